@@ -1,0 +1,28 @@
+# Two entry points that work on a fresh machine with only Python 3:
+#   make run   - create .venv on first use, install, run the paper reproduction
+#   make test  - create .venv on first use, install, lint and run all tests
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: run test bench lint clean
+
+$(STAMP): pyproject.toml requirements.lock
+	$(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade "pip>=23.2"
+	$(BIN)/python -m pip install -q -c requirements.lock -e ".[test]"
+	touch $(STAMP)
+
+run: $(STAMP)
+	$(BIN)/ngnav paper
+
+test: $(STAMP)
+	$(BIN)/ruff check ngnav filters telemetry tests
+	$(BIN)/python -m pytest
+
+bench: $(STAMP)
+	$(BIN)/ngnav bench
+
+clean:
+	rm -rf $(VENV) build *.egg-info

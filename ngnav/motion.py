@@ -1,0 +1,123 @@
+"""Exact rigid-body truth for simulated runs.
+
+A truth record holds attitude, body rate, its derivative and the specific force
+at the body origin, all analytic: the rate derivative is the derivative of the
+rate profile, never a finite difference of sampled attitude.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ngnav.conventions import gravity_n_mps2
+from ngnav.records import check_time_axis, frozen_array
+from ngnav.rotation import dcm_from_quat, quat_from_axis_angle, quat_multiply, quat_normalize
+
+
+@dataclass(frozen=True)
+class RigidBodyTruth:
+    """Exact kinematics of the body at the sample times.
+
+    Attributes
+    ----------
+    t_s : array (T,)
+        Times, s.
+    q_nb : array (T, 4)
+        Attitude, body to NED, Hamilton scalar first.
+    omega_b_rps : array (T, 3)
+        Body rate, rad/s.
+    omega_dot_b_rps2 : array (T, 3)
+        Body angular acceleration, rad/s^2.
+    f_b_mps2 : array (T, 3)
+        Specific force at the body origin, body frame, m/s^2.
+    """
+
+    t_s: np.ndarray
+    q_nb: np.ndarray
+    omega_b_rps: np.ndarray
+    omega_dot_b_rps2: np.ndarray
+    f_b_mps2: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name, tail in (
+            ("t_s", ()),
+            ("q_nb", (4,)),
+            ("omega_b_rps", (3,)),
+            ("omega_dot_b_rps2", (3,)),
+            ("f_b_mps2", (3,)),
+        ):
+            object.__setattr__(self, name, frozen_array(getattr(self, name), name, tail))
+        check_time_axis(self.t_s)
+
+    def loop_state(self) -> np.ndarray:
+        """True values (T, 9) of the compensation loop's channels (rate, rate dot, force)."""
+        return np.hstack([self.omega_b_rps, self.omega_dot_b_rps2, self.f_b_mps2])
+
+
+def min_jerk_step(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Quintic minimum-jerk step ``s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5`` on [0, 1].
+
+    Returns s, ds/dtau, d2s/dtau2; constant 0 before and 1 after the step.
+    """
+    x = np.clip(np.asarray(tau, dtype=float), 0.0, 1.0)
+    s = x**3 * (10 - 15 * x + 6 * x * x)
+    ds = 30 * x**2 * (1 - x) ** 2
+    dds = 60 * x * (1 - x) * (1 - 2 * x)
+    return s, ds, dds
+
+
+def fixed_axis_turn(
+    angle_rad: float,
+    *,
+    duration_s: float,
+    rest_before_s: float,
+    rest_after_s: float,
+    rate_hz: float,
+    axis_b: np.ndarray,
+    pivot_b_m: np.ndarray,
+    q0_nb: np.ndarray | None = None,
+) -> RigidBodyTruth:
+    """A turn by ``angle_rad`` about a body- and space-fixed axis (an indexing head).
+
+    The body rests, turns with a minimum-jerk profile, and rests again. The
+    axis passes through ``pivot_b_m`` (body frame, from the body origin), so
+    the origin, off the axis, feels tangential and centripetal acceleration.
+
+    Parameters
+    ----------
+    angle_rad : float
+        Turn angle, rad (right-hand about ``axis_b``).
+    duration_s, rest_before_s, rest_after_s : float
+        Durations of the turn and of the rests around it, s.
+    rate_hz : float
+        Sample rate, Hz.
+    axis_b : array (3,)
+        Turn axis, body frame (normalised here).
+    pivot_b_m : array (3,)
+        A point of the axis, body frame, m.
+    q0_nb : array (4,), optional
+        Attitude before the turn; identity (level, facing north) by default.
+    """
+    for name, v in (("duration_s", duration_s), ("rate_hz", rate_hz)):
+        if not np.isfinite(v) or v <= 0:
+            raise ValueError(f"{name} must be positive, got {v}")
+    if rest_before_s < 0 or rest_after_s < 0:
+        raise ValueError("rest durations must not be negative")
+    k = np.asarray(axis_b, dtype=float)
+    k = k / np.linalg.norm(k)
+    n = round((rest_before_s + duration_s + rest_after_s) * rate_hz) + 1
+    t = np.arange(n) / rate_hz
+    s, ds, dds = min_jerk_step((t - rest_before_s) / duration_s)
+    alpha = angle_rad * s
+    rate = angle_rad * ds / duration_s
+    acc = angle_rad * dds / duration_s**2
+    w = rate[:, None] * k
+    wd = acc[:, None] * k
+    q0 = np.array([1.0, 0.0, 0.0, 0.0]) if q0_nb is None else quat_normalize(q0_nb)
+    q = quat_normalize(quat_multiply(q0, quat_from_axis_angle(k, alpha)))
+    d = -np.asarray(pivot_b_m, dtype=float)  # origin relative to the pivot, body frame
+    a_b = np.cross(wd, d) + np.cross(w, np.cross(w, d))
+    g_b = np.einsum("tji,j->ti", dcm_from_quat(q), gravity_n_mps2())
+    return RigidBodyTruth(t, q, w, wd, a_b - g_b)

@@ -1,0 +1,123 @@
+"""One-step-ahead predictors for the compensation loop (paper section 3.2).
+
+Each predictor forecasts the next value of C channels from the last ``window``
+values, ``forecast(history, j) -> (values (C,), n_fallbacks)``, history of
+shape (window, C), oldest first; ``j`` is the index of the sample being
+predicted (only the oracle uses it). The same loop runs each of them, so the
+comparison between GM(1,1) and simpler predictors is like for like.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ngnav.grey import MAX_ABS_A, MIN_WINDOW, grey_operators, one_step_forecast
+
+
+@dataclass(frozen=True)
+class LastValuePredictor:
+    """Forecast = the last value (zero-order hold)."""
+
+    name: str = "last"
+    window: int = 1
+
+    def forecast(self, history: np.ndarray, j: int) -> tuple[np.ndarray, int]:
+        return history[-1], 0
+
+
+@dataclass(frozen=True)
+class LinePredictor:
+    """Least-squares straight line over the window, extrapolated one step."""
+
+    window: int = 5
+    name: str = "line"
+    _weights: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if self.window < 2:
+            raise ValueError(f"a line needs a window of at least 2, got {self.window}")
+        k = np.arange(self.window, dtype=float)
+        design = np.column_stack([np.ones_like(k), k])
+        weights = np.array([1.0, float(self.window)]) @ np.linalg.pinv(design)
+        weights.setflags(write=False)
+        object.__setattr__(self, "_weights", weights)
+
+    def forecast(self, history: np.ndarray, j: int) -> tuple[np.ndarray, int]:
+        return self._weights @ history, 0
+
+
+@dataclass(frozen=True)
+class GreyPredictor:
+    """GM(1,1) one-step forecast per channel (see :func:`ngnav.grey.one_step_forecast`).
+
+    Parameters
+    ----------
+    window : int
+        Window length n >= 4.
+    shift : "auto" or array (C,)
+        ``"auto"``: per-window shift of :func:`ngnav.grey.auto_shift`. An array:
+        a fixed shift per channel (must keep the data positive).
+    """
+
+    window: int = 5
+    shift: str | np.ndarray = "auto"
+    name: str = "gm11"
+
+    def __post_init__(self) -> None:
+        if self.window < MIN_WINDOW:
+            raise ValueError(f"GM(1,1) needs a window of at least {MIN_WINDOW}, got {self.window}")
+        ops = np.ascontiguousarray(grey_operators(self.window).T)  # (2m + 2, n)
+        object.__setattr__(self, "_ops", ops)
+        if not isinstance(self.shift, str):
+            shift = np.array(self.shift, dtype=float)
+            shift.setflags(write=False)
+            object.__setattr__(self, "shift", shift)
+
+    def forecast(self, history: np.ndarray, j: int) -> tuple[np.ndarray, int]:
+        """GM(1,1) forecast of each column of ``history`` (n, C).
+
+        A lean path for a fixed shift computes the same formula as
+        :func:`ngnav.grey.one_step_forecast` with fewer array operations; any
+        window it cannot take (zero variance, a = 0, |a| > MAX_ABS_A) goes to
+        that function, which handles it.
+        """
+        c = self.shift
+        if isinstance(c, str):
+            values, fell_back = one_step_forecast(history, c, axis=0)
+            return values, int(np.count_nonzero(fell_back))
+        n = self.window
+        m = n - 1
+        y = history + c
+        p = self._ops @ y  # centred z (m), centred Y (m), mean z, mean Y
+        vc = (p[: 2 * m].reshape(2, m, -1) * p[:m]).sum(axis=1)  # var(z), cov(z, Y)
+        var, cov = vc[0], vc[1]
+        if var.all():
+            a = cov / var
+            np.negative(a, out=a)
+            if a.all() and np.abs(a).max() <= MAX_ABS_A:
+                f = (p[2 * m + 1] + a * (p[2 * m] - y[0])) * (np.expm1(a) / a)
+                f *= np.exp(-n * a)
+                f -= c
+                return f, 0
+        values, fell_back = one_step_forecast(history, c, axis=0)
+        return values, int(np.count_nonzero(fell_back))
+
+
+@dataclass(frozen=True)
+class OraclePredictor:
+    """The true value at the predicted sample (simulation only).
+
+    Parameters
+    ----------
+    truth : array (T, C)
+        True channel values at every sample of the run.
+    """
+
+    truth: np.ndarray
+    name: str = "oracle"
+    window: int = 1
+
+    def forecast(self, history: np.ndarray, j: int) -> tuple[np.ndarray, int]:
+        return self.truth[j], 0

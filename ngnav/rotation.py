@@ -1,0 +1,116 @@
+"""Hamilton scalar-first quaternions (``[w, x, y, z]``), vectorised.
+
+All functions accept arrays with any number of leading dimensions and a last
+axis of 4 (quaternions) or 3 (vectors). ``q_nb`` rotates body vectors into
+NED (see :mod:`ngnav.conventions`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product ``p * q``, shapes (..., 4)."""
+    p = np.asarray(p, dtype=float)
+    q = np.asarray(q, dtype=float)
+    pw, px, py, pz = np.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_conjugate(q: np.ndarray) -> np.ndarray:
+    """Conjugate (the inverse of a unit quaternion), shape (..., 4)."""
+    q = np.asarray(q, dtype=float)
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def quat_normalize(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion with a non-negative scalar part, shape (..., 4)."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0.0, -q, q)
+
+
+def quat_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
+    """Exponential map: rotation vector (..., 3), rad -> unit quaternion (..., 4).
+
+    Accurate for small angles (uses the series of sin(x)/x below 1e-4 rad).
+    """
+    rotvec = np.asarray(rotvec, dtype=float)
+    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
+    half = 0.5 * angle
+    small = angle < 1e-4
+    # sin(half)/angle; series 1/2 - angle^2/48 for small angles
+    safe = np.where(small, 1.0, angle)
+    k = np.where(small, 0.5 - angle**2 / 48.0, np.sin(half) / safe)
+    return np.concatenate([np.cos(half), k * rotvec], axis=-1)
+
+
+def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
+    """Logarithm map: unit quaternion (..., 4) -> rotation vector (..., 3), rad.
+
+    Returns the shortest rotation (angle in [0, pi]).
+    """
+    q = quat_normalize(q)
+    v = q[..., 1:]
+    s = np.linalg.norm(v, axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(s, q[..., :1])
+    small = s < 1e-12
+    scale = np.where(small, 2.0 / np.where(small, q[..., :1], 1.0), angle / np.where(small, 1.0, s))
+    return scale * v
+
+
+def quat_from_axis_angle(axis: np.ndarray, angle_rad: np.ndarray | float) -> np.ndarray:
+    """Quaternion for a rotation by ``angle_rad`` about unit ``axis`` (3,)."""
+    axis = np.asarray(axis, dtype=float)
+    axis = axis / np.linalg.norm(axis)
+    angle = np.asarray(angle_rad, dtype=float)[..., None]
+    return np.concatenate([np.cos(0.5 * angle), np.sin(0.5 * angle) * axis], axis=-1)
+
+
+def dcm_from_quat(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix ``C_nb`` (..., 3, 3) from ``q_nb`` (..., 4): ``v_n = C_nb @ v_b``."""
+    q = quat_normalize(q)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=-2,
+    )
+
+
+def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate body vectors into NED: ``v_n = q_nb * v_b * conj(q_nb)``; shapes (...,4), (...,3)."""
+    return np.einsum("...ij,...j->...i", dcm_from_quat(q), np.asarray(v, dtype=float))
+
+
+def euler_from_quat(q: np.ndarray) -> np.ndarray:
+    """Roll, pitch, yaw (ZYX, rad) from ``q_nb``, shape (..., 3). For display only."""
+    q = quat_normalize(q)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
+    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return np.stack([roll, pitch, yaw], axis=-1)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Skew matrix ``[v]x`` (..., 3, 3) with ``skew(v) @ n == cross(v, n)``."""
+    v = np.asarray(v, dtype=float)
+    x, y, z = np.moveaxis(v, -1, 0)
+    o = np.zeros_like(x)
+    return np.stack(
+        [np.stack([o, -z, y], -1), np.stack([z, o, -x], -1), np.stack([-y, x, o], -1)], axis=-2
+    )

@@ -1,0 +1,1 @@
+"""MAVLink telemetry for ngnav (pymavlink); empty until the telemetry issue lands."""

@@ -1,0 +1,60 @@
+"""The CLI as a real subprocess, and the paper-reproduction targets."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+
+def run(*args, check=True):
+    proc = subprocess.run(
+        [sys.executable, "-m", "ngnav.cli", *args], capture_output=True, text=True, timeout=600
+    )
+    if check and proc.returncode != 0:
+        raise AssertionError(proc.stderr)
+    return proc
+
+
+@pytest.fixture(scope="module")
+def paper_json():
+    return json.loads(run("paper", "--json").stdout)
+
+
+def test_paper_reproduction_targets(paper_json):
+    m = paper_json["methods"]
+    assert set(m) == {"none", "gm11", "last", "line", "oracle"}
+    assert len(paper_json["rows"]) == 16
+    paper = paper_json["paper"]
+    assert paper["measured"]["mean_abs_deg"] == pytest.approx(5.043, abs=1e-3)
+    assert paper["compensated"]["mean_abs_deg"] == pytest.approx(3.0325, abs=1e-4)
+    # GM(1,1) lowers the mean absolute error at least as much as the paper (-40 %)
+    assert m["gm11"]["mean_abs_deg"] <= 0.60 * m["none"]["mean_abs_deg"]
+    # and comes within 1.2x of the oracle predictor
+    assert m["gm11"]["mean_abs_deg"] <= 1.2 * m["oracle"]["mean_abs_deg"]
+    for name, s in m.items():
+        assert s["rms_deg"] >= s["mean_abs_deg"] and s["max_abs_deg"] >= s["rms_deg"], name
+
+
+def test_paper_is_reproducible(paper_json):
+    again = json.loads(run("paper", "--json", "--methods", "none,gm11").stdout)
+    for a, b in zip(again["rows"], paper_json["rows"], strict=True):
+        assert a["gm11_deg"] == b["gm11_deg"] and a["none_deg"] == b["none_deg"]
+
+
+def test_grey_command():
+    out = run("grey", "27260", "29547", "32411", "35388").stdout
+    assert "a = -0.08999517239" in out and "38713.4" in out
+
+
+def test_bad_input_exits_with_message():
+    proc = run("paper", "--set", "sensor.noise_mv=loud", check=False)
+    assert proc.returncode == 2 and "sensor.noise_mv" in proc.stderr
+    proc = run("grey", "1", "2", "3", check=False)
+    assert proc.returncode == 2 and "at least 4" in proc.stderr
+
+
+def test_help_lists_commands():
+    out = run("--help").stdout
+    for cmd in ("paper", "calibrate", "grey", "bench"):
+        assert cmd in out

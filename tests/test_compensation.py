@@ -1,0 +1,86 @@
+import numpy as np
+import pytest
+
+from ngnav.compensation import compensate
+from ngnav.frontend import ArraySolver
+from ngnav.layout import nine_accelerometer_cube
+from ngnav.motion import fixed_axis_turn
+from ngnav.mounting import MountingErrors
+from ngnav.predictors import GreyPredictor, LastValuePredictor, OraclePredictor
+from ngnav.records import ArraySamples
+
+SHIFT = np.repeat([2.1, 245.0, 24.5], 3)
+
+
+def _setup(noise=0.0, seed=1):
+    rng = np.random.default_rng([seed, 0])
+    layout = nine_accelerometer_cube(0.1)
+    truth = fixed_axis_turn(
+        np.deg2rad(120.0),
+        duration_s=3.0,
+        rest_before_s=0.5,
+        rest_after_s=0.5,
+        rate_hz=100.0,
+        axis_b=np.array([0.2, -0.3, 1.0]),
+        pivot_b_m=np.array([0.05, 0.05, 0.05]),
+    )
+    err = MountingErrors(rng.normal(0, 0.004, (9, 3)), rng.normal(0, 0.01, (9, 2)))
+    a = err.real_layout(layout).outputs(truth.omega_dot_b_rps2, truth.f_b_mps2, truth.omega_b_rps)
+    a = a + noise * rng.normal(size=a.shape)
+    return layout, truth, err, ArraySamples(truth.t_s, a)
+
+
+def test_true_errors_with_oracle_remove_mounting_error_exactly():
+    layout, truth, err, samples = _setup()
+    out = compensate(
+        samples, ArraySolver(layout), err.error_matrix(layout), OraclePredictor(truth.loop_state())
+    )
+    np.testing.assert_allclose(out.omega_dot_b_rps2, truth.omega_dot_b_rps2, atol=1e-10)
+    np.testing.assert_allclose(out.f_b_mps2, truth.f_b_mps2, atol=1e-10)
+    raw = compensate(samples, ArraySolver(layout), None, LastValuePredictor())
+    assert (
+        np.max(np.abs(raw.omega_dot_b_rps2 - truth.omega_dot_b_rps2)) > 0.05
+    )  # there was an error
+
+
+def test_with_noise_compensation_reaches_noise_floor():
+    """Residual error of the compensated solve equals that of a solve of error-free outputs."""
+    sigma = 0.01
+    layout, truth, err, samples = _setup(noise=sigma, seed=2)
+    solver = ArraySolver(layout)
+    e = err.error_matrix(layout)
+    for pred in (OraclePredictor(truth.loop_state()), GreyPredictor(5, shift=SHIFT)):
+        out = compensate(samples, solver, e, pred)
+        resid = out.omega_dot_b_rps2 - truth.omega_dot_b_rps2
+        # noise floor: the LS bound for omega_dot with this sigma
+        floor = np.sqrt(np.diag(solver.covariance())[:3]) * sigma
+        n = resid.shape[0]
+        # the sample variance of n white samples lies within +-5 sqrt(2/n) of the truth (chi-square)
+        ratio = resid.var(axis=0) / floor**2
+        assert np.all(np.abs(ratio - 1) < 5 * np.sqrt(2 / n) + 0.05), (pred.name, ratio)
+        assert np.all(np.abs(resid.mean(axis=0)) < 5 * floor / np.sqrt(n) + 0.02)
+
+
+def test_invalid_sample_is_held_or_rejected():
+    layout, _truth, err, samples = _setup()
+    a = samples.accel_mps2.copy()
+    a[50, 2] = np.nan
+    bad = ArraySamples(samples.t_s, a)
+    solver, e = ArraySolver(layout), err.error_matrix(layout)
+    with pytest.raises(ValueError, match="sample 50"):
+        compensate(bad, solver, e, GreyPredictor(5, shift=SHIFT))
+    out = compensate(bad, solver, e, GreyPredictor(5, shift=SHIFT), on_invalid="hold")
+    assert out.n_held == 1 and np.all(np.isfinite(out.state()))
+    good = compensate(samples, solver, e, GreyPredictor(5, shift=SHIFT))
+    assert np.max(np.abs(out.omega_b_rps - good.omega_b_rps)) < 1e-3
+
+
+def test_channel_count_mismatch():
+    layout, _truth, _err, samples = _setup()
+    with pytest.raises(ValueError, match="channels"):
+        compensate(
+            ArraySamples(samples.t_s, samples.accel_mps2[:, :8]),
+            ArraySolver(layout),
+            None,
+            LastValuePredictor(),
+        )
