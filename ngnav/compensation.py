@@ -21,7 +21,7 @@ import numpy as np
 
 from ngnav.frontend import ArraySolver
 from ngnav.layout import N_FEATURES, OMEGA_DOT, RATE_PRODUCTS, SPECIFIC_FORCE
-from ngnav.records import ArraySamples, frozen_array
+from ngnav.records import ArraySamples, freeze_fields
 
 #: Channels the loop forecasts, in order: rate (3), angular acceleration (3), specific force (3).
 STATE_CHANNELS: tuple[str, ...] = (
@@ -84,14 +84,16 @@ class CompensatedKinematics:
     n_held: int
 
     def __post_init__(self) -> None:
-        for name, tail in (
-            ("t_s", ()),
-            ("omega_b_rps", (3,)),
-            ("omega_dot_b_rps2", (3,)),
-            ("f_b_mps2", (3,)),
-            ("rate_products_rps2", (3,)),
-        ):
-            object.__setattr__(self, name, frozen_array(getattr(self, name), name, tail))
+        freeze_fields(
+            self,
+            {
+                "t_s": (),
+                "omega_b_rps": (3,),
+                "omega_dot_b_rps2": (3,),
+                "f_b_mps2": (3,),
+                "rate_products_rps2": (3,),
+            },
+        )
 
     def state(self) -> np.ndarray:
         """The loop's channels (T, 9) in :data:`STATE_CHANNELS` order."""

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ngnav.conventions import gravity_n_mps2
-from ngnav.records import check_time_axis, frozen_array
+from ngnav.records import check_time_axis, freeze_fields
 from ngnav.rotation import dcm_from_quat, quat_from_axis_angle, quat_multiply, quat_normalize
 
 
@@ -41,14 +41,16 @@ class RigidBodyTruth:
     f_b_mps2: np.ndarray
 
     def __post_init__(self) -> None:
-        for name, tail in (
-            ("t_s", ()),
-            ("q_nb", (4,)),
-            ("omega_b_rps", (3,)),
-            ("omega_dot_b_rps2", (3,)),
-            ("f_b_mps2", (3,)),
-        ):
-            object.__setattr__(self, name, frozen_array(getattr(self, name), name, tail))
+        freeze_fields(
+            self,
+            {
+                "t_s": (),
+                "q_nb": (4,),
+                "omega_b_rps": (3,),
+                "omega_dot_b_rps2": (3,),
+                "f_b_mps2": (3,),
+            },
+        )
         check_time_axis(self.t_s)
 
     def loop_state(self) -> np.ndarray:

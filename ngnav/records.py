@@ -22,6 +22,15 @@ def frozen_array(a: np.ndarray | None, name: str, shape_tail: tuple[int, ...] = 
     return out
 
 
+def freeze_fields(record: object, shapes: dict[str, tuple[int, ...]]) -> None:
+    """Replace the named array fields of a frozen dataclass by read-only copies.
+
+    ``shapes`` maps field name to the required trailing shape (``()`` for any).
+    """
+    for name, tail in shapes.items():
+        object.__setattr__(record, name, frozen_array(getattr(record, name), name, tail))
+
+
 def check_time_axis(t_s: np.ndarray, name: str = "t_s") -> None:
     """Raise ValueError naming the first sample where ``t_s`` is not finite or not increasing."""
     if t_s.ndim != 1:
@@ -103,11 +112,13 @@ class ArrayKinematics:
     rate_squares_rps2: np.ndarray
 
     def __post_init__(self) -> None:
-        for name, tail in (
-            ("t_s", ()),
-            ("omega_dot_b_rps2", (3,)),
-            ("f_b_mps2", (3,)),
-            ("rate_products_rps2", (3,)),
-            ("rate_squares_rps2", (3,)),
-        ):
-            object.__setattr__(self, name, frozen_array(getattr(self, name), name, tail))
+        freeze_fields(
+            self,
+            {
+                "t_s": (),
+                "omega_dot_b_rps2": (3,),
+                "f_b_mps2": (3,),
+                "rate_products_rps2": (3,),
+                "rate_squares_rps2": (3,),
+            },
+        )
