@@ -160,7 +160,7 @@ def compensate(
 
     window = predictor.window
     hist = np.empty((n_samples + window, 9))
-    phi_out = np.empty((n_samples, N_FEATURES))
+    phi_out = np.full((n_samples, N_FEATURES), np.nan)
     first = solver.solve_features(a[0], omega_b_rps=w0)
     hist[:window] = np.concatenate([w0, first[OMEGA_DOT], first[SPECIFIC_FORCE]])
     # Everything linear is done for all samples at once: with S the solve operator,
@@ -173,7 +173,6 @@ def compensate(
     aided_q = aided - 6
     qi, qj = _QUAD_I, _QUAD_J
     dt = np.diff(t, prepend=t[0])
-    phi_out[:] = np.nan
     w_prev = w0
     wd_prev = first[OMEGA_DOT]
     n_fallbacks = 0

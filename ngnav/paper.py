@@ -85,6 +85,21 @@ def outward_directions(layout: ArrayLayout) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
+def _static_mean_mv(
+    sensor: AccelerometerModel,
+    real: ArrayLayout,
+    errors: ChannelErrors,
+    up_b: np.ndarray,
+    samples: int,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """Mean output (K, N), mV, over ``samples`` samples at rest with ``up_b[k]`` (K, 3) up."""
+    zeros = np.zeros((up_b.shape[0], 3))
+    a = real.outputs(zeros, G0_MPS2 * up_b, zeros)  # at rest f = +g along the up direction
+    v, _ = sensor.volts(np.repeat(a[:, None, :], samples, axis=1), errors, rng)
+    return v.mean(axis=1)
+
+
 def static_readings_mv(
     sensor: AccelerometerModel,
     real: ArrayLayout,
@@ -95,16 +110,11 @@ def static_readings_mv(
 ) -> np.ndarray:
     """Mean output (K, N), mV, of each channel at rest with ``up_b[k]`` (K, 3) pointing up.
 
-    Each orientation is a fresh power-up-free hold: the bias is common to all
-    orientations of a calibration session (drawn once here).
+    The bias is common to all orientations of a calibration session (drawn once here).
     """
     bias = rng.normal(0.0, sensor.bias_mv, real.n_sensors)
     errors = ChannelErrors(bias_mv=bias, scale_error=scale_error)
-    zeros = np.zeros((up_b.shape[0], 3))
-    f = G0_MPS2 * up_b  # specific force at rest: +g along the up direction
-    a = real.outputs(zeros, f, zeros)  # (K, N)
-    v, _ = sensor.volts(np.repeat(a[:, None, :], samples, axis=1), errors, rng)
-    return v.mean(axis=1)
+    return _static_mean_mv(sensor, real, errors, up_b, samples, rng)
 
 
 def build_hardware(scn: TiltTableScenario, rng: np.random.Generator) -> Hardware:
@@ -149,17 +159,19 @@ def eq27_calibrate(
     bias = rng.normal(0.0, sensor.bias_mv, nominal.n_sensors)
     errors = ChannelErrors(bias_mv=bias, scale_error=scale_error)
     for i in range(nominal.n_sensors):
-        zeros = np.zeros((4, 3))
-        a = real.outputs(zeros, G0_MPS2 * positions[i], zeros)
-        v, _ = sensor.volts(np.repeat(a[:, None, :], samples, axis=1), errors, rng)
-        v = v.mean(axis=1)[:, i]
+        v = _static_mean_mv(sensor, real, errors, positions[i], samples, rng)[:, i]
         out[i] = eq27_axis_error(v[0], v[1], np.sign(v[2] - v[3]), sensor.sensitivity_mv_per_g)
     return out
 
 
+def turn_axis_b(scn: TiltTableScenario) -> np.ndarray:
+    """The indexing head's axis in the body frame: z (vertical) or x (horizontal)."""
+    return np.array([0.0, 0.0, 1.0]) if scn.test.plane == "horizontal" else np.array([1.0, 0, 0])
+
+
 def turn_truth(scn: TiltTableScenario, angle_rad: float) -> RigidBodyTruth:
     """Exact kinematics of one indexing-head turn of the scenario."""
-    axis = np.array([0.0, 0.0, 1.0]) if scn.test.plane == "horizontal" else np.array([1, 0, 0.0])
+    axis = turn_axis_b(scn)
     return fixed_axis_turn(
         angle_rad,
         duration_s=scn.test.turn_duration_s,
@@ -227,7 +239,7 @@ def measure_turn(
         "line": LinePredictor(window=window),
         "oracle": OraclePredictor(truth.loop_state()),
     }
-    axis = np.array([0.0, 0.0, 1.0]) if scn.test.plane == "horizontal" else np.array([1, 0, 0.0])
+    axis = turn_axis_b(scn)
     angles, fallbacks = {}, {}
     for name in methods:
         out = compensate(
