@@ -117,7 +117,7 @@ def _coerce(value: Any, kind: Any, where: str) -> Any:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ValueError(f"{where}: expected an integer, got {value!r}")
         return value
-    if kind is float:
+    if kind is float or text == "float | None":
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ValueError(f"{where}: expected a number, got {value!r}")
         return float(value)

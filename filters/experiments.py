@@ -1,0 +1,260 @@
+"""Evaluation and Monte Carlo consistency of the filter on simulated scenarios.
+
+``evaluate_scenario`` runs one simulated flight through five configurations
+side by side; ``consistency`` runs R Monte Carlo flights (``default_rng([seed,
+i])``) in parallel with dask and measures NEES and NIS against chi-square
+bounds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from filters.evaluate import (
+    ErrorSummary,
+    RunErrors,
+    bound_summary,
+    chi2_bounds,
+    nees,
+    run_errors,
+    share_inside,
+    summarise,
+)
+from filters.gps_only import run_gps_only
+from filters.pipeline import RunResult, run_filter
+from ngnav.flight_scenario import FlightScenario
+from ngnav.simulate import SimulatedRun, simulate_flight
+
+#: The configurations of ``ngnav evaluate``, in table order.
+CONFIGURATIONS: tuple[str, ...] = ("gm11", "none", "oracle", "array-alone", "gps-alone")
+
+
+@dataclass(frozen=True)
+class EvaluationRow:
+    name: str
+    summary: ErrorSummary
+    bound: dict[str, float] | None
+    counts: dict[str, int]
+
+
+def run_configuration(sim: SimulatedRun, name: str, bound: bool = False) -> RunResult | None:
+    """Run one configuration of the table on a simulated run (None for GPS alone)."""
+    if name == "gps-alone":
+        return None
+    method = "gm11" if name == "array-alone" else name
+    return run_filter(
+        sim.samples,
+        sim.fixes,
+        sim.config,
+        compensation=method,
+        use_gps=name != "array-alone",
+        true_layout=sim.true_layout(),
+        truth=sim.truth,
+        bound=bound,
+    )
+
+
+def _gps_only_errors(sim: SimulatedRun, t_out: np.ndarray) -> RunErrors:
+    cfg = sim.config
+    p, v, _ = run_gps_only(sim.fixes, cfg.lat0_deg, cfg.lon0_deg, cfg.alt0_m, t_out)
+    idx = np.rint((t_out - sim.truth.t_s[0]) / np.median(np.diff(sim.truth.t_s))).astype(int)
+    nan3 = np.full((t_out.shape[0], 3), np.nan)
+    # GPS alone locates the antenna; compare with the antenna's true position
+    from ngnav.rotation import dcm_from_quat
+
+    arm = dcm_from_quat(sim.truth.q_nb[idx]) @ cfg.antenna_b_m
+    return RunErrors(
+        t_out, sim.truth.pos_ned_m[idx] + arm - p, sim.truth.vel_ned_mps[idx] - v, nan3, nan3, nan3
+    )
+
+
+def evaluate_scenario(
+    scn: FlightScenario, run_index: int = 0, configurations: tuple[str, ...] = CONFIGURATIONS
+) -> dict:
+    """Errors of each configuration on one simulated run, with the bound and event checks."""
+    sim = simulate_flight(scn, run_index)
+    rows = []
+    main = None
+    t_ref = None
+    for name in configurations:
+        if name == "gps-alone":
+            continue
+        res = run_configuration(sim, name, bound=name == "gm11")
+        errs = run_errors(res.estimates, sim.truth)
+        bnd = (
+            bound_summary(res.estimates.bound_nav) if res.estimates.bound_nav is not None else None
+        )
+        rows.append(EvaluationRow(name, summarise(errs), bnd, res.counts))
+        if name == "gm11":
+            main = (res, errs)
+        t_ref = res.estimates.t_s
+    if "gps-alone" in configurations and t_ref is not None:
+        rows.append(EvaluationRow("gps-alone", summarise(_gps_only_errors(sim, t_ref)), None, {}))
+    out = {
+        "scenario": scn.name,
+        "run_index": run_index,
+        "sensor": scn.sensor.preset,
+        "gps_rate_hz": scn.gps.rate_hz,
+        "rows": rows,
+    }
+    if main is not None:
+        out["events"] = _events(sim, scn, *main)
+    raw = sim.fixes
+    from ngnav.geodesy import LocalTangentPlane
+    from ngnav.rotation import dcm_from_quat
+
+    ltp = LocalTangentPlane(sim.config.lat0_deg, sim.config.lon0_deg, sim.config.alt0_m)
+    idx = np.rint((raw.t_s - sim.truth.t_s[0]) / np.median(np.diff(sim.truth.t_s))).astype(int)
+    ant = sim.truth.pos_ned_m[idx] + dcm_from_quat(sim.truth.q_nb[idx]) @ sim.config.antenna_b_m
+    d = ltp.to_ned(raw.lat_deg, raw.lon_deg, raw.alt_m) - ant
+    ok = ~sim.glitched
+    out["raw_gps_horiz_rms_m"] = float(np.sqrt(np.mean(d[ok, 0] ** 2 + d[ok, 1] ** 2)))
+    return out
+
+
+def _events(sim: SimulatedRun, scn: FlightScenario, res: RunResult, errs: RunErrors) -> dict:
+    ev: dict = {}
+    inn = res.innovations
+    for tg in np.flatnonzero(sim.glitched):
+        t_g = sim.fixes.t_s[tg]
+        k = int(np.argmin(np.abs(inn.t_s - t_g)))
+        e = int(np.searchsorted(res.estimates.t_s, t_g))
+        before, after = res.estimates.pos_ned_m[e - 1], res.estimates.pos_ned_m[e]
+        v = res.estimates.vel_ned_mps[e - 1]
+        dt = res.estimates.t_s[e] - res.estimates.t_s[e - 1]
+        moved = float(np.linalg.norm((after - before - v * dt)[:2]))
+        sig = float(np.sqrt(np.trace(res.estimates.cov_nav[e - 1][0:2, 0:2])))
+        ev[f"glitch at {t_g:.1f} s"] = {
+            "rejected": bool(not inn.pos_accepted[k]),
+            "nis": float(inn.nis_pos[k]),
+            "moved_m": moved,
+            "sigma_m": sig,
+        }
+    g = scn.gps
+    if g.outage_s > 0:
+        t_end = g.outage_start_s + g.outage_s
+        m = errs.t_s >= t_end
+        sig = np.sqrt(np.einsum("eii->ei", res.estimates.cov_nav[m][:, 0:6, 0:6]))
+        inside = np.all(np.abs(errs.stacked()[m][:, 0:6]) <= 3 * sig, axis=1)
+        # recovered: from then on inside for at least 5 s
+        t = errs.t_s[m]
+        rec = None
+        for j in np.flatnonzero(inside):
+            w = (t >= t[j]) & (t <= t[j] + 5.0)
+            if np.all(inside[w]):
+                rec = float(t[j] - t_end)
+                break
+        at_end = errs.t_s.searchsorted(t_end)
+        ev["outage"] = {
+            "end_s": t_end,
+            "horiz_err_at_end_m": float(np.hypot(*errs.pos_ned_m[at_end, :2])),
+            "recovered_within_3sigma_after_s": rec,
+        }
+    return ev
+
+
+# --------------------------------------------------------------------- Monte Carlo
+def _one_run(scn: FlightScenario, i: int, method: str) -> dict:
+    sim = simulate_flight(scn, i)
+    res = run_filter(
+        sim.samples,
+        sim.fixes,
+        sim.config,
+        compensation=method,
+        true_layout=sim.true_layout(),
+        truth=sim.truth,
+    )
+    errs = run_errors(res.estimates, sim.truth)
+    ne = {k: v.astype(np.float32) for k, v in nees(errs, res.estimates.cov_nav).items()}
+    inn = res.innovations
+    keep = np.ones(inn.t_s.shape, dtype=bool)
+    for tg in sim.fixes.t_s[sim.glitched]:
+        keep &= np.abs(inn.t_s - tg) > 1e-9
+    return {
+        "nees": ne,
+        "t_s": res.estimates.t_s,
+        "nis_pos": np.where(keep, inn.nis_pos, np.nan),
+        "nis_vel": inn.nis_vel,
+        "rate_nis": res.rate_nis,
+        "rate_dim": res.rate_dim,
+        "att_rms_deg": float(np.rad2deg(np.sqrt(np.mean(np.sum(errs.att_ned_rad**2, axis=1))))),
+    }
+
+
+def consistency(
+    scn: FlightScenario,
+    runs: int,
+    method: str | None = None,
+    workers: int = 2,
+    progress: bool = False,
+) -> dict:
+    """NEES/NIS over ``runs`` Monte Carlo runs; share of epochs inside the 95 % bounds.
+
+    Runs execute in parallel with dask's process scheduler (``workers``
+    processes; 1 runs them in this process). Glitched fixes are left out of
+    the NIS (they are meant to fail it).
+    """
+    import dask
+    from tqdm import tqdm
+
+    method = method or scn.filter.compensation
+    if runs < 1:
+        raise ValueError(f"runs must be at least 1, got {runs}")
+    results: list[dict] = []
+    bar = tqdm(total=runs, desc=f"consistency {method}", disable=not progress, unit="run")
+    chunk = max(1, workers)
+    for start in range(0, runs, chunk):
+        tasks = [
+            dask.delayed(_one_run)(scn, i, method) for i in range(start, min(runs, start + chunk))
+        ]
+        if workers > 1:
+            results += dask.compute(*tasks, scheduler="processes", num_workers=workers)
+        else:
+            results += dask.compute(*tasks, scheduler="synchronous")
+        bar.update(len(tasks))
+    bar.close()
+    lengths = {r["t_s"].shape[0] for r in results}
+    if len(lengths) != 1:
+        raise RuntimeError("Monte Carlo runs produced different epochs; cannot average")
+    dims = {"pos": 3, "vel": 3, "att": 3, "rate": 3, "all": 12}
+    out: dict = {"scenario": scn.name, "runs": runs, "method": method, "blocks": {}}
+    for name, d in dims.items():
+        avg = np.mean([r["nees"][name] for r in results], axis=0)
+        lo, hi = chi2_bounds(d, runs)
+        out["blocks"][f"NEES {name}"] = {
+            "dim": d,
+            "lower": lo,
+            "upper": hi,
+            "mean": float(np.mean(avg)),
+            "share_inside": share_inside(avg, d, runs),
+        }
+    for key, d in (("nis_pos", 3), ("nis_vel", 3)):
+        avg = np.nanmean(np.vstack([r[key] for r in results]), axis=0)
+        lo, hi = chi2_bounds(d, runs)
+        out["blocks"][f"NIS gps {key[4:]}"] = {
+            "dim": d,
+            "lower": lo,
+            "upper": hi,
+            "mean": float(np.nanmean(avg)),
+            "share_inside": share_inside(avg, d, runs),
+        }
+    nq = results[0]["rate_dim"]
+    if nq:
+        avg = np.nanmean(np.vstack([r["rate_nis"] for r in results]), axis=0)
+        lo, hi = chi2_bounds(nq, runs)
+        out["blocks"]["NIS rate"] = {
+            "dim": nq,
+            "lower": lo,
+            "upper": hi,
+            "mean": float(np.nanmean(avg)),
+            "share_inside": share_inside(avg, nq, runs),
+        }
+    out["att_rms_deg_median"] = float(np.median([r["att_rms_deg"] for r in results]))
+    return out
+
+
+def summary_dict(row: EvaluationRow) -> dict:
+    """A JSON-ready view of an evaluation row."""
+    return {"name": row.name, **asdict(row.summary), "bound": row.bound, "counts": row.counts}

@@ -1,0 +1,69 @@
+"""The filter's one declared state layout (error state and nominal state).
+
+Error state ``dx`` (the Kalman state; zero after every reset), in this order:
+
+=========  =====  ==============================================================
+block      size   meaning
+=========  =====  ==============================================================
+POS        3      position error, NED, m (true - estimate)
+VEL        3      velocity error, NED, m/s
+ATT        3      attitude error, NED, rad: ``q_true = exp(dtheta) * q_est``
+RATE       3      body-rate error, FRD, rad/s
+B_WDOT     3      bias of the solved angular acceleration, FRD, rad/s^2
+B_F        3      bias of the solved specific force, FRD, m/s^2
+B_QUAD     nq     bias of the solved rate-quadratic terms, rad^2/s^2
+=========  =====  ==============================================================
+
+Why these biases: each channel's bias ``beta_i`` enters the solved features as
+``S beta`` (S the solve operator), one-to-one for the nine-cube (nine outputs,
+nine solved features). Six of those nine directions (``B_WDOT``, ``B_F``) drive
+the navigation drift and are observable from GPS through attitude and
+velocity; the other ``nq`` (three rate products for the nine-cube) enter only
+the rate measurement, where they would read as a false rate of up to
+``sqrt(bias / l)`` (0.3 rad/s for 1 mg on a 0.1 m arm) if left out; they are
+observable whenever the rate is held by the integrated angular acceleration
+and the GPS-held attitude. So all nine are carried, as the 9-D image of the
+channel biases, with a prior and random walk mapped through ``S`` (so the
+three blocks start correlated exactly as the channel biases make them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+POS = slice(0, 3)
+VEL = slice(3, 6)
+ATT = slice(6, 9)
+RATE = slice(9, 12)
+B_WDOT = slice(12, 15)
+B_F = slice(15, 18)
+#: Number of navigation error states (position, velocity, attitude, rate).
+N_NAV = 12
+#: Error states before the rate-quadratic biases.
+N_BASE = 18
+
+
+def b_quad(nq: int) -> slice:
+    """Slice of the rate-quadratic bias block for ``nq`` solved quadratic terms."""
+    return slice(N_BASE, N_BASE + nq)
+
+
+@dataclass(frozen=True)
+class StateLayout:
+    """Error-state size for a layout with ``nq`` solved rate-quadratic terms."""
+
+    nq: int
+
+    @property
+    def n(self) -> int:
+        """Total error-state size."""
+        return N_BASE + self.nq
+
+    @property
+    def bias(self) -> slice:
+        """All bias states (angular acceleration, force, quadratic), in solve-column order."""
+        return slice(12, N_BASE + self.nq)
+
+
+#: Names of the error-state blocks used for NEES, with their slices.
+NEES_BLOCKS: dict[str, slice] = {"pos": POS, "vel": VEL, "att": ATT, "rate": RATE}

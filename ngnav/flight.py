@@ -1,0 +1,291 @@
+"""Exact truth of simulated flights: attitude, rate, rate derivative, position, velocity.
+
+A flight is described by three smooth profiles, bank ``phi``, pitch ``theta``
+and airspeed ``V``, each a sum of minimum-jerk transitions (continuous up to
+the second derivative). The body flies along its x axis (no sideslip, no angle
+of attack), so ``v_n = C_nb [V, 0, 0]``. The heading rate is that of a
+coordinated turn, ``psi_dot = g0 tan(phi) / V`` (zero below ``taxi_speed_mps``),
+unless a transition asks for an explicit yaw rate.
+
+Everything the array and the filter see follows analytically from the profiles
+and their derivatives:
+
+- ``q_nb`` from the ZYX Euler angles ``(psi, theta, phi)``;
+- ``omega_b`` from the Euler-rate kinematics, and ``omega_dot_b`` from their
+  exact time derivative (never a finite difference of sampled attitude);
+- ``a_b = [V_dot, omega_z V, -omega_y V]`` (the derivative of ``C_nb v_b``),
+  ``f_b = a_b - C_bn g_n``.
+
+Heading and position, the two integrals, come from three-point Gauss-Legendre
+quadrature of the same analytic derivatives over every sample interval (and,
+for the heading inside an interval, over the part of it up to each node):
+error of order ``dt^7``, far below anything a filter can see.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ngnav.conventions import G0_MPS2, gravity_n_mps2
+from ngnav.motion import RigidBodyTruth, min_jerk_step
+from ngnav.records import check_time_axis, freeze_fields
+from ngnav.rotation import dcm_from_quat, quat_multiply
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One minimum-jerk change of a profile.
+
+    Parameters
+    ----------
+    start_s : float
+        Time the change starts, s.
+    duration_s : float
+        Length of the change, s (> 0).
+    delta : float
+        Change of the profile value (rad for angles, m/s for speed, rad/s for yaw rate).
+    """
+
+    start_s: float
+    duration_s: float
+    delta: float
+
+
+@dataclass(frozen=True)
+class Profile:
+    """A scalar profile: ``initial + sum_i delta_i s((t - start_i) / duration_i)``."""
+
+    initial: float
+    transitions: tuple[Transition, ...] = ()
+
+    def evaluate(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Value, first and second time derivative at the times (T,)."""
+        t = np.asarray(t_s, dtype=float)
+        v = np.full(t.shape, self.initial)
+        dv = np.zeros(t.shape)
+        ddv = np.zeros(t.shape)
+        flat = t.ravel()
+        if flat.size > 1 and not np.all(flat[1:] >= flat[:-1]):
+            order = np.argsort(flat, kind="stable")
+            vals = self.evaluate(flat[order])
+            out = [np.empty_like(flat) for _ in range(3)]
+            for o, val in zip(out, vals, strict=True):
+                o[order] = val
+            return tuple(o.reshape(t.shape) for o in out)  # type: ignore[return-value]
+        vf, dvf, ddvf = v.ravel(), dv.ravel(), ddv.ravel()
+        for tr in self.transitions:
+            i0 = int(np.searchsorted(flat, tr.start_s, side="left"))
+            i1 = int(np.searchsorted(flat, tr.start_s + tr.duration_s, side="right"))
+            vf[i1:] += tr.delta
+            s, ds, dds = min_jerk_step((flat[i0:i1] - tr.start_s) / tr.duration_s)
+            vf[i0:i1] += tr.delta * s
+            dvf[i0:i1] += tr.delta * ds / tr.duration_s
+            ddvf[i0:i1] += tr.delta * dds / tr.duration_s**2
+        return v, dv, ddv
+
+
+@dataclass(frozen=True)
+class FlightPlan:
+    """Profiles of a flight and its start.
+
+    Attributes
+    ----------
+    duration_s : float
+        Length of the flight, s.
+    bank, pitch, speed : Profile
+        Roll angle (rad), pitch angle (rad) and airspeed along body x (m/s).
+    yaw_rate : Profile
+        Extra heading rate (rad/s) on top of the coordinated-turn rate;
+        used to turn on the ground.
+    heading0_rad : float
+        Initial heading, rad from north.
+    taxi_speed_mps : float
+        Below this speed the coordinated-turn heading rate is switched off
+        (it tends to infinity as V -> 0); the switch is smooth (a min-jerk
+        blend over the speed band ``[0.5, 1] * taxi_speed_mps``).
+    """
+
+    duration_s: float
+    bank: Profile
+    pitch: Profile
+    speed: Profile
+    yaw_rate: Profile = Profile(0.0)
+    heading0_rad: float = 0.0
+    taxi_speed_mps: float = 2.0
+
+    def heading_rate(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Heading rate (rad/s) and its derivative (rad/s^2) at the times (T,)."""
+        phi, dphi, _ = self.bank.evaluate(t_s)
+        v, dv, _ = self.speed.evaluate(t_s)
+        r, dr, _ = self.yaw_rate.evaluate(t_s)
+        vt = self.taxi_speed_mps
+        blend, dblend_dv, _ = min_jerk_step((v - 0.5 * vt) / (0.5 * vt))
+        dblend = dblend_dv / (0.5 * vt) * dv
+        vs = np.maximum(v, 0.25 * vt)  # blend is 0 there anyway; avoids 1/0
+        tan, sec2 = np.tan(phi), 1.0 / np.cos(phi) ** 2
+        coord = G0_MPS2 * tan / vs
+        dcoord = np.where(v > 0.25 * vt, G0_MPS2 * (sec2 * dphi * vs - tan * dv) / vs**2, 0.0)
+        return blend * coord + r, dblend * coord + blend * dcoord + dr
+
+
+@dataclass(frozen=True)
+class FlightTruth:
+    """Exact truth of a flight at the array's sample times.
+
+    Attributes
+    ----------
+    t_s : array (T,)
+        Times, s.
+    pos_ned_m : array (T, 3)
+        Position of the body origin in the tangent plane, NED, m.
+    vel_ned_mps : array (T, 3)
+        Velocity of the body origin, NED, m/s.
+    q_nb : array (T, 4)
+        Attitude, body (FRD) to NED, Hamilton scalar first.
+    omega_b_rps, omega_dot_b_rps2 : array (T, 3)
+        Body rate (rad/s) and its derivative (rad/s^2), body frame.
+    f_b_mps2 : array (T, 3)
+        Specific force at the body origin, body frame, m/s^2.
+    """
+
+    t_s: np.ndarray
+    pos_ned_m: np.ndarray
+    vel_ned_mps: np.ndarray
+    q_nb: np.ndarray
+    omega_b_rps: np.ndarray
+    omega_dot_b_rps2: np.ndarray
+    f_b_mps2: np.ndarray
+
+    def __post_init__(self) -> None:
+        freeze_fields(
+            self,
+            {
+                "t_s": (),
+                "pos_ned_m": (3,),
+                "vel_ned_mps": (3,),
+                "q_nb": (4,),
+                "omega_b_rps": (3,),
+                "omega_dot_b_rps2": (3,),
+                "f_b_mps2": (3,),
+            },
+        )
+        check_time_axis(self.t_s)
+
+    @property
+    def body(self) -> RigidBodyTruth:
+        """The rotational part as a :class:`~ngnav.motion.RigidBodyTruth`."""
+        return RigidBodyTruth(
+            self.t_s, self.q_nb, self.omega_b_rps, self.omega_dot_b_rps2, self.f_b_mps2
+        )
+
+
+def quat_from_euler(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """``q_nb`` (..., 4) of ZYX Euler angles (rad): yaw about z, then pitch, then roll."""
+    r, p, y = (np.asarray(a, dtype=float) / 2 for a in (roll, pitch, yaw))
+    z = np.zeros_like(r + p + y)
+    qz = np.stack([np.cos(y) + z, z, z, np.sin(y) + z], -1)
+    qy = np.stack([np.cos(p) + z, z, np.sin(p) + z, z], -1)
+    qx = np.stack([np.cos(r) + z, np.sin(r) + z, z, z], -1)
+    return quat_multiply(quat_multiply(qz, qy), qx)
+
+
+def euler_rates_to_body(
+    euler: tuple[np.ndarray, np.ndarray, np.ndarray],
+    rates: tuple[np.ndarray, np.ndarray, np.ndarray],
+    accels: tuple[np.ndarray, np.ndarray, np.ndarray],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Body rate and its exact derivative from ZYX Euler angles and their derivatives.
+
+    Parameters
+    ----------
+    euler, rates, accels : tuples (phi, theta, psi) of arrays (T,)
+        Angles (rad), rates (rad/s) and accelerations (rad/s^2).
+
+    Returns
+    -------
+    omega_b_rps, omega_dot_b_rps2 : arrays (T, 3)
+    """
+    phi, th, _ = euler
+    dphi, dth, dpsi = rates
+    ddphi, ddth, ddpsi = accels
+    sf, cf, st, ct = np.sin(phi), np.cos(phi), np.sin(th), np.cos(th)
+    w = np.stack([dphi - dpsi * st, dth * cf + dpsi * sf * ct, -dth * sf + dpsi * cf * ct], axis=-1)
+    wd = np.stack(
+        [
+            ddphi - ddpsi * st - dpsi * dth * ct,
+            ddth * cf
+            - dth * dphi * sf
+            + ddpsi * sf * ct
+            + dpsi * dphi * cf * ct
+            - dpsi * dth * sf * st,
+            -ddth * sf
+            - dth * dphi * cf
+            + ddpsi * cf * ct
+            - dpsi * dphi * sf * ct
+            - dpsi * dth * cf * st,
+        ],
+        axis=-1,
+    )
+    return w, wd
+
+
+_GL_X = np.array([-np.sqrt(0.6), 0.0, np.sqrt(0.6)])
+_GL_W = np.array([5.0, 8.0, 5.0]) / 9.0
+
+
+def _integrate_heading_and_position(
+    plan: FlightPlan, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Heading (T,) and NED position (T, 3) by Gauss-Legendre quadrature per interval."""
+    h = np.diff(t)  # (T-1,)
+    frac = 0.5 * (1.0 + _GL_X)  # node positions in an interval, as fractions
+    nodes = t[:-1, None] + h[:, None] * frac  # (T-1, 3)
+    dpsi_nodes = plan.heading_rate(nodes.ravel())[0].reshape(nodes.shape)
+    psi = plan.heading0_rad + np.concatenate([[0.0], np.cumsum(0.5 * h * (dpsi_nodes @ _GL_W))])
+    # heading at each node: psi(t_k) + integral from t_k to the node (GL on the sub-interval)
+    sub = t[:-1, None, None] + (h[:, None] * frac)[:, :, None] * frac[None, None, :]
+    dpsi_sub = plan.heading_rate(sub.ravel())[0].reshape(sub.shape)
+    psi_nodes = psi[:-1, None] + 0.5 * (h[:, None] * frac) * (dpsi_sub @ _GL_W)
+    th = plan.pitch.evaluate(nodes.ravel())[0].reshape(nodes.shape)
+    v = plan.speed.evaluate(nodes.ravel())[0].reshape(nodes.shape)
+    vel = np.stack(
+        [v * np.cos(th) * np.cos(psi_nodes), v * np.cos(th) * np.sin(psi_nodes), -v * np.sin(th)],
+        axis=-1,
+    )  # (T-1, 3 nodes, 3)
+    steps = 0.5 * h[:, None] * np.einsum("knc,n->kc", vel, _GL_W)
+    pos = np.vstack([np.zeros(3), np.cumsum(steps, axis=0)])
+    return psi, pos
+
+
+def fly(plan: FlightPlan, rate_hz: float) -> FlightTruth:
+    """Sample the exact truth of ``plan`` at ``rate_hz`` from t = 0 to its duration.
+
+    Raises
+    ------
+    ValueError
+        If the rate or duration is not positive, or the pitch reaches +-90 deg
+        (the Euler description is singular there).
+    """
+    if not np.isfinite(rate_hz) or rate_hz <= 0:
+        raise ValueError(f"rate_hz must be positive, got {rate_hz}")
+    if not np.isfinite(plan.duration_s) or plan.duration_s <= 0:
+        raise ValueError(f"duration_s must be positive, got {plan.duration_s}")
+    n = round(plan.duration_s * rate_hz) + 1
+    t = np.arange(n) / rate_hz
+
+    psi, pos = _integrate_heading_and_position(plan, t)
+    phi, dphi, ddphi = plan.bank.evaluate(t)
+    th, dth, ddth = plan.pitch.evaluate(t)
+    if np.any(np.abs(th) >= np.deg2rad(89.0)):
+        raise ValueError("pitch reaches +-89 deg: the Euler-angle flight description is singular")
+    v, dv, _ = plan.speed.evaluate(t)
+    dpsi, ddpsi = plan.heading_rate(t)
+    w, wd = euler_rates_to_body((phi, th, psi), (dphi, dth, dpsi), (ddphi, ddth, ddpsi))
+    q = quat_from_euler(phi, th, psi)
+    c_nb = dcm_from_quat(q)
+    vel = v[:, None] * c_nb[:, :, 0]
+    a_b = np.stack([dv, w[:, 2] * v, -w[:, 1] * v], axis=-1)
+    g_b = np.einsum("tji,j->ti", c_nb, gravity_n_mps2())
+    return FlightTruth(t, pos, vel, q, w, wd, a_b - g_b)

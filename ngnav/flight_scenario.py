@@ -1,0 +1,239 @@
+"""Flight scenarios: typed records read from the shipped TOML files.
+
+A flight scenario names the array, the sensor preset, the mounting errors and
+their calibration, the GPS receiver, the reference point, how the filter is
+initialised, and the flight itself as a list of legs. Each leg starts by
+moving bank, pitch, speed and yaw rate to its targets with a minimum-jerk
+ramp of ``ramp_s`` and holds them to the end of the leg; a key a leg leaves
+out keeps its previous value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ngnav.flight import FlightPlan, Profile, Transition
+from ngnav.scenario import _build, apply_overrides, read_scenario_data
+from ngnav.sensors import PRESET_NAMES, AccelerometerSpec, sensor_preset
+
+
+@dataclass(frozen=True)
+class FlightRunConfig:
+    seed: int
+    rate_hz: float
+
+
+@dataclass(frozen=True)
+class FlightArrayConfig:
+    layout: str = "nine-cube"
+    lever_arm_m: float = 0.1
+
+
+@dataclass(frozen=True)
+class SensorChoice:
+    preset: str
+    noise_density_ug_rthz: float | None = None
+    turn_on_bias_mg: float | None = None
+    bias_rw_ug_rts: float | None = None
+    scale_error: float | None = None
+    range_g: float | None = None
+
+    def spec(self) -> AccelerometerSpec:
+        """The preset with any overridden fields."""
+        if self.preset not in PRESET_NAMES:
+            raise ValueError(f"unknown sensor preset {self.preset!r}; presets: {PRESET_NAMES}")
+        base = sensor_preset(self.preset)
+        changes = {
+            f.name: getattr(self, f.name)
+            for f in dataclasses.fields(self)
+            if f.name != "preset" and getattr(self, f.name) is not None
+        }
+        return dataclasses.replace(base, **changes) if changes else base
+
+
+@dataclass(frozen=True)
+class FlightMountingConfig:
+    outward_offset_m: float = 0.006
+    position_scatter_m: float = 0.0005
+    axis_error_deg: float = 0.5
+    calibration_samples: int = 2000
+
+
+@dataclass(frozen=True)
+class GpsConfig:
+    rate_hz: float = 5.0
+    h_acc_m: float = 1.5
+    v_acc_m: float = 3.0
+    vel_acc_mps: float = 0.1
+    latency_s: float = 0.0
+    antenna_b_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    outage_start_s: float = -1.0
+    outage_s: float = 0.0
+    glitch_times_s: tuple[float, ...] = ()
+    glitch_m: float = 50.0
+
+
+@dataclass(frozen=True)
+class ReferenceConfig:
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+
+
+@dataclass(frozen=True)
+class InitialConfig:
+    heading_deg: float = 0.0
+    alignment: str = "static"
+    static_s: float = 5.0
+    tilt_sigma_deg: float = 2.0
+    heading_source: str = "config"
+    heading_sigma_deg: float = 5.0
+    rate_sigma_dps: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.alignment not in ("static", "config"):
+            raise ValueError(f"alignment must be 'static' or 'config', got {self.alignment!r}")
+        if self.heading_source not in ("config", "gps"):
+            raise ValueError(
+                f"heading_source must be 'config' or 'gps', got {self.heading_source!r}"
+            )
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    rate_hz: float = 100.0
+    compensation: str = "gm11"
+    window: int = 5
+    gate_probability: float = 0.9999
+    rate_range_dps: float = 200.0
+
+    def __post_init__(self) -> None:
+        if self.compensation not in COMPENSATIONS:
+            raise ValueError(
+                f"compensation must be one of {COMPENSATIONS}, got {self.compensation!r}"
+            )
+
+
+#: Compensation choices of the filter's front end.
+COMPENSATIONS: tuple[str, ...] = ("gm11", "none", "line", "last", "oracle")
+
+
+@dataclass(frozen=True)
+class Leg:
+    duration_s: float
+    ramp_s: float = 1.0
+    bank_deg: float | None = None
+    pitch_deg: float | None = None
+    speed_mps: float | None = None
+    yaw_rate_dps: float | None = None
+
+
+@dataclass(frozen=True)
+class FlightScenario:
+    """A whole flight scenario (see the module docstring)."""
+
+    name: str
+    run: FlightRunConfig
+    array: FlightArrayConfig
+    sensor: SensorChoice
+    mounting: FlightMountingConfig
+    gps: GpsConfig
+    reference: ReferenceConfig
+    initial: InitialConfig
+    filter: FilterConfig
+    legs: tuple[Leg, ...]
+    initial_speed_mps: float = 0.0
+
+    def plan(self) -> FlightPlan:
+        """The flight's bank, pitch, speed and yaw-rate profiles."""
+        current = {"bank": 0.0, "pitch": 0.0, "speed": self.initial_speed_mps, "yaw": 0.0}
+        trans: dict[str, list[Transition]] = {k: [] for k in current}
+        start = 0.0
+        keys = {
+            "bank": "bank_deg",
+            "pitch": "pitch_deg",
+            "speed": "speed_mps",
+            "yaw": "yaw_rate_dps",
+        }
+        for leg in self.legs:
+            for k, attr in keys.items():
+                target = getattr(leg, attr)
+                if target is None:
+                    continue
+                value = target if k == "speed" else np.deg2rad(target)
+                if value != current[k]:
+                    trans[k].append(Transition(start, leg.ramp_s, value - current[k]))
+                    current[k] = value
+            start += leg.duration_s
+        return FlightPlan(
+            duration_s=start,
+            bank=Profile(0.0, tuple(trans["bank"])),
+            pitch=Profile(0.0, tuple(trans["pitch"])),
+            speed=Profile(self.initial_speed_mps, tuple(trans["speed"])),
+            yaw_rate=Profile(0.0, tuple(trans["yaw"])),
+            heading0_rad=float(np.deg2rad(self.initial.heading_deg)),
+        )
+
+
+_SECTIONS = {
+    "run": FlightRunConfig,
+    "array": FlightArrayConfig,
+    "sensor": SensorChoice,
+    "mounting": FlightMountingConfig,
+    "gps": GpsConfig,
+    "reference": ReferenceConfig,
+    "initial": InitialConfig,
+    "filter": FilterConfig,
+}
+
+
+def _legs(value: Any, source: str) -> tuple[Leg, ...]:
+    if not isinstance(value, list) or not value:
+        raise ValueError(f"{source}: flight.legs must be a non-empty list of tables")
+    legs = []
+    for i, item in enumerate(value):
+        leg = _build(Leg, item, f"flight.legs[{i}]", source)
+        if leg.duration_s <= 0 or not 0 < leg.ramp_s <= leg.duration_s:
+            raise ValueError(
+                f"{source}: flight.legs[{i}] needs duration_s > 0 and 0 < ramp_s <= duration_s"
+            )
+        legs.append(leg)
+    return tuple(legs)
+
+
+def load_flight(name_or_path: str, overrides: list[str] | None = None) -> FlightScenario:
+    """Load a flight scenario (shipped name or path), applying ``section.key=value`` overrides."""
+    data, source = read_scenario_data(name_or_path)
+    data = apply_overrides(data, overrides or [], source)
+    known = set(_SECTIONS) | {"flight"}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise ValueError(f"{source}: unknown section [{unknown[0]}]")
+    parts = {}
+    for section, cls in _SECTIONS.items():
+        if section not in data:
+            raise ValueError(f"{source}: missing section [{section}]")
+        parts[section] = _build(cls, data[section], section, source)
+    flight = data.get("flight")
+    if not isinstance(flight, dict) or "legs" not in flight:
+        raise ValueError(f"{source}: missing [flight] with legs")
+    extra = sorted(set(flight) - {"legs", "initial_speed_mps"})
+    if extra:
+        raise ValueError(f"{source}: unknown key flight.{extra[0]}")
+    speed0 = flight.get("initial_speed_mps", 0.0)
+    if isinstance(speed0, bool) or not isinstance(speed0, int | float):
+        raise ValueError(f"{source}: flight.initial_speed_mps: expected a number")
+    parts["sensor"].spec()  # validate the preset now, naming the file
+    return FlightScenario(
+        name=source, legs=_legs(flight["legs"], source), initial_speed_mps=float(speed0), **parts
+    )
+
+
+def is_flight_scenario(name_or_path: str) -> bool:
+    """True if the scenario file has a [flight] section (the tilt table has none)."""
+    data, _ = read_scenario_data(name_or_path)
+    return "flight" in data

@@ -1,0 +1,169 @@
+"""Simulated runs: a flight scenario turned into array samples, GPS fixes and truth.
+
+Everything random in one run comes from ``numpy.random.default_rng([seed, i])``
+(``i`` the run index), in a fixed order: mounting errors, scale errors, the
+bench calibration, the flight's channel noise and biases, the GPS errors, the
+initial heading and attitude the filter is told. The same seed and index give
+the same run, bit for bit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ngnav.calibration import calibrate_multiposition, multiposition_directions
+from ngnav.conventions import G0_MPS2
+from ngnav.flight import FlightTruth, fly
+from ngnav.flight_scenario import FlightScenario
+from ngnav.geodesy import LocalTangentPlane
+from ngnav.gps import GpsFixes, GpsReceiverModel
+from ngnav.layout import ArrayLayout, layout_by_name
+from ngnav.mounting import MountingErrors
+from ngnav.paper import outward_directions
+from ngnav.records import ArraySamples
+from ngnav.rotation import euler_from_quat
+from ngnav.runconfig import FilterSettings, InitialSettings, RunConfig
+from ngnav.sensors import AccelerometerSpec
+
+
+@dataclass(frozen=True)
+class SimulatedRun:
+    """One simulated run: the inputs a filter sees, what it is told, and the truth.
+
+    Attributes
+    ----------
+    truth : FlightTruth
+    samples : ArraySamples
+        Channel outputs (T, N), m/s^2.
+    saturated : array (T, N) of bool
+    channel_bias_mps2 : array (T, N)
+        True channel biases.
+    fixes : GpsFixes
+    glitched : array (M,) of bool
+        Fixes given a position jump.
+    config : RunConfig
+        What the filter is told (calibrated geometry, noise, initial heading).
+    true_errors : MountingErrors
+        The real mounting errors (for the oracle geometry).
+    true_scale : array (N,)
+        Real over nominal sensitivity.
+    """
+
+    truth: FlightTruth
+    samples: ArraySamples
+    saturated: np.ndarray
+    channel_bias_mps2: np.ndarray
+    fixes: GpsFixes
+    glitched: np.ndarray
+    config: RunConfig
+    true_errors: MountingErrors
+    true_scale: np.ndarray
+
+    def true_layout(self) -> ArrayLayout:
+        """The array as really built."""
+        return self.true_errors.real_layout(self.config.layout)
+
+
+def bench_calibration(
+    spec: AccelerometerSpec,
+    real: ArrayLayout,
+    nominal: ArrayLayout,
+    scale_error: np.ndarray,
+    samples: int,
+    rate_hz: float,
+    rng: np.random.Generator,
+):
+    """Multi-position calibration from simulated static readings (18 orientations).
+
+    Readings are means of ``samples`` noisy samples with a bench-session bias;
+    returns :class:`ngnav.calibration.MultiPositionCalibration` (its "mV" are
+    milli-g here: sensitivity 1000 per g).
+    """
+    up = multiposition_directions()
+    zeros = np.zeros((up.shape[0], 3))
+    a = real.outputs(zeros, G0_MPS2 * up, zeros)  # (K, N) at rest, f = +g along up
+    n = real.n_sensors
+    bias = rng.normal(0.0, spec.turn_on_bias_mps2(), n)
+    sigma = spec.sample_sigma_mps2(rate_hz) / np.sqrt(samples)
+    readings = (1.0 + scale_error) * a + bias + rng.normal(0.0, sigma, a.shape)
+    return calibrate_multiposition(up, readings / G0_MPS2 * 1000.0, nominal, 1000.0)
+
+
+def simulate_flight(scn: FlightScenario, run_index: int = 0) -> SimulatedRun:
+    """Simulate run ``run_index`` of a flight scenario (see module docstring)."""
+    rng = np.random.default_rng([scn.run.seed, run_index])
+    rate = scn.run.rate_hz
+    spec = scn.sensor.spec()
+    nominal = layout_by_name(scn.array.layout, scn.array.lever_arm_m)
+    n = nominal.n_sensors
+    m = scn.mounting
+    designed = m.outward_offset_m * outward_directions(nominal)
+    scatter = rng.normal(0.0, m.position_scatter_m, (n, 3))
+    axes = rng.normal(0.0, np.deg2rad(m.axis_error_deg), (n, 2))
+    true_errors = MountingErrors(designed + scatter, axes)
+    scale_error = rng.normal(0.0, spec.scale_error, n)
+    real = true_errors.real_layout(nominal)
+    cal = bench_calibration(spec, real, nominal, scale_error, m.calibration_samples, rate, rng)
+    known = MountingErrors(designed, cal.axis_error_rad)
+
+    truth = fly(scn.plan(), rate)
+    clean = real.outputs(truth.omega_dot_b_rps2, truth.f_b_mps2, truth.omega_b_rps)
+    out, saturated, bias = spec.simulate(clean, rate, scale_error, rng)
+    samples = ArraySamples(truth.t_s, out)
+
+    g = scn.gps
+    outages = ((g.outage_start_s, g.outage_s),) if g.outage_s > 0 else ()
+    receiver = GpsReceiverModel(
+        rate_hz=g.rate_hz,
+        h_acc_m=g.h_acc_m,
+        v_acc_m=g.v_acc_m,
+        vel_acc_mps=g.vel_acc_mps,
+        latency_s=g.latency_s,
+        antenna_b_m=g.antenna_b_m,
+        outages=outages,
+        glitch_times_s=g.glitch_times_s,
+        glitch_m=g.glitch_m,
+    )
+    ltp = LocalTangentPlane(scn.reference.lat_deg, scn.reference.lon_deg, scn.reference.alt_m)
+    fixes, glitched = receiver.simulate(truth, ltp, rng)
+
+    ini = scn.initial
+    rpy0 = np.rad2deg(euler_from_quat(truth.q_nb[0]))
+    tilt_err = rng.normal(0.0, ini.tilt_sigma_deg, 2)
+    yaw_err = rng.normal(0.0, ini.heading_sigma_deg)
+    initial = InitialSettings(
+        alignment=ini.alignment,
+        static_s=ini.static_s,
+        roll_deg=float(rpy0[0] + tilt_err[0]),
+        pitch_deg=float(rpy0[1] + tilt_err[1]),
+        yaw_deg=float(rpy0[2] + yaw_err),
+        tilt_sigma_deg=ini.tilt_sigma_deg,
+        heading_source=ini.heading_source,
+        heading_sigma_deg=ini.heading_sigma_deg,
+        rate_sigma_dps=ini.rate_sigma_dps,
+    )
+    f = scn.filter
+    config = RunConfig(
+        layout=nominal,
+        known_errors=known,
+        scale=cal.scale,
+        offset_mps2=np.zeros(n),
+        noise_sigma_mps2=np.full(n, spec.sample_sigma_mps2(rate)),
+        turn_on_bias_mps2=np.full(n, spec.turn_on_bias_mps2()),
+        bias_rw_mps2_rts=np.full(n, spec.bias_rw_mps2_rts()),
+        range_mps2=spec.range_g * G0_MPS2,
+        lat0_deg=scn.reference.lat_deg,
+        lon0_deg=scn.reference.lon_deg,
+        alt0_m=scn.reference.alt_m,
+        antenna_b_m=np.asarray(g.antenna_b_m),
+        position_sigma_m=m.position_scatter_m,
+        initial=initial,
+        filter=FilterSettings(
+            f.rate_hz, f.compensation, f.window, f.gate_probability, f.rate_range_dps
+        ),
+    )
+    return SimulatedRun(
+        truth, samples, saturated, bias, fixes, glitched, config, true_errors, 1.0 + scale_error
+    )

@@ -1,0 +1,203 @@
+"""The GPS/array filter end to end: files, bad input, glitches, covariance checks, CLI."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from filters.ekf import CovarianceError, FilterNoise, NavFilter
+from filters.evaluate import run_errors
+from filters.experiments import consistency
+from filters.pipeline import run_filter
+from ngnav.flight_scenario import load_flight
+from ngnav.records import ArraySamples
+from ngnav.runconfig import read_run_config, write_run_config
+from ngnav.runio import read_array_csv, read_gps_csv, write_array_csv, write_gps_csv
+from ngnav.simulate import simulate_flight
+
+ROOT = Path(__file__).resolve().parents[1]
+SHORT = ["run.rate_hz=200"]
+
+
+@pytest.fixture(scope="module")
+def tactical():
+    return simulate_flight(load_flight("tactical", SHORT), 0)
+
+
+def test_config_round_trip(tmp_path, tactical):
+    write_run_config(tactical.config, tmp_path / "config.toml")
+    back = read_run_config(tmp_path / "config.toml")
+    assert np.array_equal(
+        back.known_errors.axis_error_rad, tactical.config.known_errors.axis_error_rad
+    )
+    assert np.array_equal(back.scale, tactical.config.scale)
+    assert back.initial == tactical.config.initial and back.filter == tactical.config.filter
+
+
+def test_csv_round_trip_and_bad_files(tmp_path, tactical):
+    write_array_csv(tmp_path / "array.csv", tactical.samples)
+    s, rep = read_array_csv(tmp_path / "array.csv", 9)
+    assert np.allclose(s.accel_mps2, tactical.samples.accel_mps2, rtol=1e-9, atol=1e-12)
+    assert rep.counts == {}
+    lines = (tmp_path / "array.csv").read_text().splitlines()
+    # a NaN row is held and counted; a dropped row is filled and counted
+    lines[10] = ",".join([lines[10].split(",")[0]] + ["nan"] * 9)
+    del lines[20]
+    (tmp_path / "a2.csv").write_text("\n".join(lines))
+    s2, rep2 = read_array_csv(tmp_path / "a2.csv", 9)
+    assert rep2.counts == {"missing samples filled": 1, "bad samples (non-finite cell)": 1}
+    assert np.count_nonzero(s2.invalid) == 2
+    assert s2.t_s.shape == s.t_s.shape
+    # unsorted time: file, line and column named
+    bad = lines.copy()
+    bad[30], bad[31] = bad[31], bad[30]
+    (tmp_path / "a3.csv").write_text("\n".join(bad))
+    with pytest.raises(
+        ValueError, match=r"a3.csv, line 32, column 't_s': unsorted time 0.15 after 0.155"
+    ):
+        read_array_csv(tmp_path / "a3.csv", 9)
+    (tmp_path / "a4.csv").write_text("t_s,a1_mps2\n0,1\n")
+    with pytest.raises(ValueError, match=r"a4.csv: missing column 'a2_mps2'"):
+        read_array_csv(tmp_path / "a4.csv", 9)
+    bad = lines.copy()
+    bad[5] = bad[5].replace(bad[5].split(",")[3], "x1", 1)
+    (tmp_path / "a5.csv").write_text("\n".join(bad))
+    with pytest.raises(ValueError, match=r"a5.csv, line 6, column 'a3_mps2': not a number"):
+        read_array_csv(tmp_path / "a5.csv", 9)
+
+
+def test_gps_without_fix_is_skipped_and_counted(tmp_path, tactical):
+    write_gps_csv(tmp_path / "gps.csv", tactical.fixes)
+    lines = (tmp_path / "gps.csv").read_text().splitlines()
+    cells = lines[5].split(",")
+    cells[-2] = "1"  # fix_type 1: no 3-D fix
+    lines[5] = ",".join(cells)
+    cells = lines[8].split(",")
+    cells[1] = ""
+    lines[8] = ",".join(cells)
+    (tmp_path / "g2.csv").write_text("\n".join(lines))
+    fixes, rep = read_gps_csv(tmp_path / "g2.csv")
+    assert len(fixes) == len(tactical.fixes) - 2
+    assert rep.counts == {"no fix (fix_type < 3)": 1, "no fix (empty or nan cell)": 1}
+
+
+def test_bad_samples_and_a_glitch_do_not_stop_or_corrupt_the_run(tactical):
+    a = tactical.samples.accel_mps2.copy()
+    a[3000] = np.nan  # one corrupt sample
+    a[3500, 4] = np.inf
+    samples = ArraySamples(tactical.samples.t_s, a)
+    t = tactical.fixes
+    lat = t.lat_deg.copy()
+    k = 300
+    lat[k] += 50.0 / 111_000.0  # a 50 m jump north in one fix
+    from dataclasses import replace
+
+    fixes = replace(t, lat_deg=lat)
+    res = run_filter(samples, fixes, tactical.config)
+    assert res.counts["samples held (non-finite)"] == 2
+    i = int(np.flatnonzero(np.isclose(res.innovations.t_s, t.t_s[k]))[0])
+    assert not res.innovations.pos_accepted[i] and res.innovations.nis_pos[i] > 100
+    e = int(np.searchsorted(res.estimates.t_s, t.t_s[k]))
+    est = res.estimates
+    moved = (
+        est.pos_ned_m[e]
+        - est.pos_ned_m[e - 1]
+        - est.vel_ned_mps[e - 1] * (est.t_s[e] - est.t_s[e - 1])
+    )
+    assert np.linalg.norm(moved[:2]) < np.sqrt(np.trace(est.cov_nav[e - 1][:2, :2]))
+    clean = run_filter(tactical.samples, tactical.fixes, tactical.config)
+    err_bad = run_errors(res.estimates, tactical.truth)
+    err_ok = run_errors(clean.estimates, tactical.truth)
+    late = err_ok.t_s > t.t_s[k] + 5
+    assert np.abs(err_bad.pos_ned_m[late] - err_ok.pos_ned_m[late]).max() < 0.5
+
+
+def test_covariance_check_fails_loudly():
+    eye = np.eye(9) * 1e-6
+    nf = NavFilter(FilterNoise(eye, eye, eye), np.array([[1, 2], [0, 2], [0, 1]]), np.zeros(3))
+    nf.initialise(
+        0.0,
+        np.zeros(3),
+        np.zeros(3),
+        np.array([1.0, 0, 0, 0]),
+        np.zeros(3),
+        1.0,
+        0.1,
+        np.full(3, 0.01),
+        0.01,
+    )
+    p = nf.P.copy()
+    p[0, 0] = -1.0
+    nf.P = p
+    with pytest.raises(CovarianceError, match=r"not positive definite after test at t = 0\.000 s"):
+        nf.check_covariance("test")
+
+
+def test_oracle_needs_truth(tactical):
+    with pytest.raises(ValueError, match="oracle"):
+        run_filter(tactical.samples, tactical.fixes, tactical.config, compensation="oracle")
+
+
+def test_simulate_then_run_cli(tmp_path):
+    run = (sys.executable, "-m", "ngnav.cli")
+    d = tmp_path / "run"
+    sim = subprocess.run(
+        [*run, "simulate", "--scenario", "tactical", "--set", "run.rate_hz=200", "--out", str(d)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert sim.returncode == 0, sim.stderr
+    for f in ("array.csv", "gps.csv", "config.toml", "truth.csv"):
+        assert (d / f).is_file()
+    out = subprocess.run([*run, "run", str(d)], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    counts = dict(
+        line.strip().rsplit(": ", 1)
+        for line in out.stdout.splitlines()
+        if line.startswith("  ") and ": " in line and "truth" not in line
+    )
+    # a 0.9999 gate rejects about one good fix in 10^4 per measurement
+    assert (
+        int(counts["gps fixes used"]) >= 595 and int(counts["gps positions rejected (gate)"]) <= 3
+    )
+    assert "against truth.csv" in out.stdout
+    header = (d / "estimates.csv").read_text().splitlines()[0].split(",")
+    contract = (
+        "t_s,lat_deg,lon_deg,alt_m,n_m,e_m,d_m,vn_mps,ve_mps,vd_mps,qw,qx,qy,qz,"
+        "wx_radps,wy_radps,wz_radps"
+    ).split(",")
+    assert header[: len(contract)] == contract
+    assert all(f"{c}_sigma" in header for c in contract[1:10] + contract[14:17])
+    bad = subprocess.run(
+        [*run, "run", str(tmp_path / "nowhere")], capture_output=True, text=True, cwd=ROOT
+    )
+    assert bad.returncode == 2 and "config.toml: no such file" in bad.stderr
+
+
+@pytest.fixture(scope="module")
+def monte_carlo():
+    return consistency(load_flight("tactical", SHORT), runs=6, workers=2)
+
+
+def test_consistency_small_monte_carlo(monte_carlo):
+    """Position NEES and GPS NIS inside the 95 % bounds on >= 90 % of epochs (6 runs)."""
+    out = monte_carlo
+    b = out["blocks"]
+    for name in ("NEES pos", "NIS gps pos", "NIS gps vel", "NIS rate"):
+        assert b[name]["share_inside"] >= 0.9, (name, b[name])
+    json.dumps(out)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 3 open: attitude/rate NEES too high with unknown "
+    "sensor-position scatter (see README, Consistency)",
+)
+def test_consistency_attitude_and_rate(monte_carlo):
+    out = monte_carlo
+    for name in ("NEES att", "NEES rate", "NEES vel", "NEES all"):
+        assert out["blocks"][name]["share_inside"] >= 0.9, (name, out["blocks"][name])

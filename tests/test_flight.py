@@ -1,0 +1,123 @@
+"""Flight truth, geodesy, sensor presets and GPS model: checked against exact references."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ngnav.conventions import G0_MPS2
+from ngnav.flight import FlightPlan, Profile, Transition, fly, quat_from_euler
+from ngnav.flight_scenario import load_flight
+from ngnav.geodesy import LocalTangentPlane, ecef_to_geodetic, geodetic_to_ecef
+from ngnav.rotation import dcm_from_quat, euler_from_quat, quat_conjugate, quat_multiply
+from ngnav.sensors import PRESET_NAMES, sensor_preset
+
+
+def _turning_plan() -> FlightPlan:
+    return FlightPlan(
+        duration_s=6.0,
+        bank=Profile(0.0, (Transition(0.5, 1.0, np.deg2rad(40)), Transition(3.0, 1.5, -0.9))),
+        pitch=Profile(0.0, (Transition(1.0, 2.0, np.deg2rad(10)),)),
+        speed=Profile(30.0, (Transition(0.0, 4.0, 5.0),)),
+        heading0_rad=0.3,
+    )
+
+
+def test_rate_derivative_is_the_exact_derivative_of_the_rate():
+    # central differences converge at second order to the analytic derivative (away
+    # from the ramp ends, where the jerk of a minimum-jerk step jumps by design)
+    knots = np.array([0.0, 0.5, 1.0, 1.5, 3.0, 4.0, 4.5])
+    errs = []
+    for rate in (200.0, 400.0, 800.0):
+        tr = fly(_turning_plan(), rate)
+        fd = (tr.omega_b_rps[2:] - tr.omega_b_rps[:-2]) * rate / 2
+        t = tr.t_s[1:-1]
+        smooth = np.min(np.abs(t[:, None] - knots), axis=1) > 0.05
+        errs.append(np.abs(fd - tr.omega_dot_b_rps2[1:-1])[smooth].max())
+    assert errs[1] < errs[0] / 3.5 and errs[2] < errs[1] / 3.5
+
+
+def test_rate_is_the_rate_of_the_attitude():
+    tr = fly(_turning_plan(), 1000.0)
+    # omega_b = 2 * vec(conj(q) * dq/dt), dq/dt by central differences
+    dq = (tr.q_nb[2:] - tr.q_nb[:-2]) * 500.0
+    w = 2 * quat_multiply(quat_conjugate(tr.q_nb[1:-1]), dq)[:, 1:]
+    assert np.abs(w - tr.omega_b_rps[1:-1]).max() < 1e-5
+
+
+def test_specific_force_is_acceleration_minus_gravity():
+    tr = fly(_turning_plan(), 1000.0)
+    acc_n = (tr.vel_ned_mps[2:] - tr.vel_ned_mps[:-2]) * 500.0
+    f_n = np.einsum("tij,tj->ti", dcm_from_quat(tr.q_nb[1:-1]), tr.f_b_mps2[1:-1])
+    assert np.abs(f_n + np.array([0.0, 0.0, G0_MPS2]) - acc_n).max() < 1e-4
+    pos_fd = (tr.pos_ned_m[2:] - tr.pos_ned_m[:-2]) * 500.0
+    # central-difference truncation h^2/6 |d2v/dt2| is a few 1e-6 m/s at 1 kHz here
+    assert np.abs(pos_fd - tr.vel_ned_mps[1:-1]).max() < 1e-5
+
+
+def test_coordinated_turn_has_no_side_force():
+    plan = FlightPlan(
+        8.0, Profile(0.0, (Transition(1.0, 2.0, np.deg2rad(30)),)), Profile(0.0), Profile(25.0)
+    )
+    tr = fly(plan, 200.0)
+    steady = tr.t_s > 3.5
+    assert np.abs(tr.f_b_mps2[steady, 1]).max() < 1e-9
+    # load factor 1/cos(bank)
+    assert np.allclose(-tr.f_b_mps2[steady, 2], G0_MPS2 / np.cos(np.deg2rad(30)), rtol=1e-9)
+
+
+def test_euler_round_trip():
+    q = quat_from_euler(0.3, -0.2, 2.5)
+    assert np.allclose(euler_from_quat(q), [0.3, -0.2, 2.5])
+
+
+def test_shipped_flights_meet_their_descriptions():
+    uav = load_flight("uav-survey")
+    assert uav.plan().duration_s >= 600.0 and uav.gps.outage_s == 30.0
+    tr = fly(load_flight("tactical").plan(), 200.0)
+    assert 50.0 <= tr.t_s[-1] <= 70.0
+    assert np.rad2deg(np.abs(tr.omega_b_rps).max()) <= 120.0
+    assert np.abs(tr.f_b_mps2).max() <= 2.5 * G0_MPS2
+    assert np.rad2deg(np.abs(tr.omega_b_rps[:, 0]).max()) > 100.0  # at the paper's limits
+    assert np.abs(tr.f_b_mps2[:, 2]).max() > 2.0 * G0_MPS2
+
+
+@settings(max_examples=50, deadline=None)
+@given(lat=st.floats(-89.0, 89.0), lon=st.floats(-180.0, 180.0), alt=st.floats(-500.0, 20000.0))
+def test_geodetic_ecef_round_trip(lat, lon, alt):
+    la, lo, h = ecef_to_geodetic(geodetic_to_ecef(lat, lon, alt))
+    assert abs(la - lat) < 1e-9 and abs(h - alt) < 1e-4
+    assert abs((lo - lon + 180) % 360 - 180) < 1e-9
+
+
+def test_tangent_plane_known_values():
+    ltp = LocalTangentPlane(0.0, 0.0, 0.0)
+    # one arc-minute of longitude on the equator is a*pi/(180*60) east
+    ned = ltp.to_ned(0.0, 1.0 / 60.0, 0.0)
+    assert abs(ned[1] - 6378137.0 * np.pi / 10800) < 1e-2 and abs(ned[0]) < 1e-6
+    assert np.allclose(ltp.to_ned(0.0, 0.0, 100.0), [0, 0, -100.0], atol=1e-6)
+    lat, lon, alt = ltp.to_geodetic(np.array([1000.0, -2000.0, 50.0]))
+    assert np.allclose(ltp.to_ned(lat, lon, alt), [1000.0, -2000.0, 50.0], atol=1e-6)
+
+
+def test_presets_cite_sources_and_noise_scales_with_rate():
+    for name in PRESET_NAMES:
+        p = sensor_preset(name)
+        assert len(p.sources) >= 3
+        assert p.sample_sigma_mps2(400.0) > p.sample_sigma_mps2(100.0)
+    with pytest.raises(ValueError, match="unknown sensor preset 'mems-x'"):
+        sensor_preset("mems-x")
+
+
+def test_sensor_simulation_statistics():
+    spec = sensor_preset("mems-tactical")
+    rng = np.random.default_rng(3)
+    a = np.zeros((20000, 9))
+    out, sat, bias = spec.simulate(a, 1000.0, np.zeros(9), rng)
+    resid = out - bias
+    sig = spec.sample_sigma_mps2(1000.0)
+    # sample variance of 180000 values: within 2 % (about 6 standard errors)
+    assert abs(resid.std() / sig - 1) < 0.02
+    assert not sat.any()
+    big, sat2, _ = spec.simulate(np.full((10, 9), 10 * G0_MPS2), 1000.0, np.zeros(9), rng)
+    assert sat2.all() and np.allclose(np.abs(big), spec.range_g * G0_MPS2, atol=1e-3)
