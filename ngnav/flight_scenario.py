@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from ngnav.flight import FlightPlan, Profile, Transition
+from ngnav.runconfig import FilterSettings
 from ngnav.scenario import _build, apply_overrides, read_scenario_data
 from ngnav.sensors import PRESET_NAMES, AccelerometerSpec, sensor_preset
 
@@ -104,25 +105,6 @@ class InitialConfig:
 
 
 @dataclass(frozen=True)
-class FilterConfig:
-    rate_hz: float = 100.0
-    compensation: str = "gm11"
-    window: int = 5
-    gate_probability: float = 0.9999
-    rate_range_dps: float = 200.0
-
-    def __post_init__(self) -> None:
-        if self.compensation not in COMPENSATIONS:
-            raise ValueError(
-                f"compensation must be one of {COMPENSATIONS}, got {self.compensation!r}"
-            )
-
-
-#: Compensation choices of the filter's front end.
-COMPENSATIONS: tuple[str, ...] = ("gm11", "none", "line", "last", "oracle")
-
-
-@dataclass(frozen=True)
 class Leg:
     duration_s: float
     ramp_s: float = 1.0
@@ -144,7 +126,7 @@ class FlightScenario:
     gps: GpsConfig
     reference: ReferenceConfig
     initial: InitialConfig
-    filter: FilterConfig
+    filter: FilterSettings
     legs: tuple[Leg, ...]
     initial_speed_mps: float = 0.0
 
@@ -187,7 +169,7 @@ _SECTIONS = {
     "gps": GpsConfig,
     "reference": ReferenceConfig,
     "initial": InitialConfig,
-    "filter": FilterConfig,
+    "filter": FilterSettings,
 }
 
 

@@ -38,7 +38,6 @@ from typing import Any
 
 import numpy as np
 
-from ngnav.flight_scenario import COMPENSATIONS
 from ngnav.layout import ArrayLayout
 from ngnav.mounting import MountingErrors
 
@@ -58,6 +57,10 @@ class InitialSettings:
     rate_sigma_dps: float = 1.0
 
 
+#: Compensation choices of the filter's front end.
+COMPENSATIONS: tuple[str, ...] = ("gm11", "none", "line", "last", "oracle")
+
+
 @dataclass(frozen=True)
 class FilterSettings:
     """Filter rate (Hz), compensation method, GM window, gate and rate range (deg/s)."""
@@ -67,6 +70,12 @@ class FilterSettings:
     window: int = 5
     gate_probability: float = 0.9999
     rate_range_dps: float = 200.0
+
+    def __post_init__(self) -> None:
+        if self.compensation not in COMPENSATIONS:
+            raise ValueError(
+                f"filter.compensation must be one of {COMPENSATIONS}, got {self.compensation!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -121,8 +130,6 @@ class RunConfig:
             )
         if self.initial.heading_source not in ("config", "gps"):
             raise ValueError("config: initial.heading_source must be config or gps")
-        if self.filter.compensation not in COMPENSATIONS:
-            raise ValueError(f"config: filter.compensation must be one of {COMPENSATIONS}")
 
 
 def _matrix(table: dict, key: str, shape: tuple[int | None, int], where: str) -> np.ndarray:

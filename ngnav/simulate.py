@@ -24,7 +24,7 @@ from ngnav.mounting import MountingErrors
 from ngnav.paper import outward_directions
 from ngnav.records import ArraySamples
 from ngnav.rotation import euler_from_quat
-from ngnav.runconfig import FilterSettings, InitialSettings, RunConfig
+from ngnav.runconfig import InitialSettings, RunConfig
 from ngnav.sensors import AccelerometerSpec
 
 
@@ -144,7 +144,6 @@ def simulate_flight(scn: FlightScenario, run_index: int = 0) -> SimulatedRun:
         heading_sigma_deg=ini.heading_sigma_deg,
         rate_sigma_dps=ini.rate_sigma_dps,
     )
-    f = scn.filter
     config = RunConfig(
         layout=nominal,
         known_errors=known,
@@ -160,9 +159,7 @@ def simulate_flight(scn: FlightScenario, run_index: int = 0) -> SimulatedRun:
         antenna_b_m=np.asarray(g.antenna_b_m),
         position_sigma_m=m.position_scatter_m,
         initial=initial,
-        filter=FilterSettings(
-            f.rate_hz, f.compensation, f.window, f.gate_probability, f.rate_range_dps
-        ),
+        filter=scn.filter,
     )
     return SimulatedRun(
         truth, samples, saturated, bias, fixes, glitched, config, true_errors, 1.0 + scale_error
