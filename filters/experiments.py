@@ -183,6 +183,19 @@ def _one_run(scn: FlightScenario, i: int, method: str) -> dict:
     }
 
 
+def _block(per_run: list[np.ndarray], dim: int, runs: int) -> dict:
+    """Run-averaged statistic of one block against its two-sided 95 % bounds."""
+    avg = np.nanmean(np.vstack(per_run), axis=0)
+    lo, hi = chi2_bounds(dim, runs)
+    return {
+        "dim": dim,
+        "lower": lo,
+        "upper": hi,
+        "mean": float(np.nanmean(avg)),
+        "share_inside": share_inside(avg, dim, runs),
+    }
+
+
 def consistency(
     scn: FlightScenario,
     runs: int,
@@ -218,39 +231,15 @@ def consistency(
     lengths = {r["t_s"].shape[0] for r in results}
     if len(lengths) != 1:
         raise RuntimeError("Monte Carlo runs produced different epochs; cannot average")
-    dims = {"pos": 3, "vel": 3, "att": 3, "rate": 3, "all": 12}
     out: dict = {"scenario": scn.name, "runs": runs, "method": method, "blocks": {}}
+    dims = {"pos": 3, "vel": 3, "att": 3, "rate": 3, "all": 12}
     for name, d in dims.items():
-        avg = np.mean([r["nees"][name] for r in results], axis=0)
-        lo, hi = chi2_bounds(d, runs)
-        out["blocks"][f"NEES {name}"] = {
-            "dim": d,
-            "lower": lo,
-            "upper": hi,
-            "mean": float(np.mean(avg)),
-            "share_inside": share_inside(avg, d, runs),
-        }
+        out["blocks"][f"NEES {name}"] = _block([r["nees"][name] for r in results], d, runs)
     for key, d in (("nis_pos", 3), ("nis_vel", 3)):
-        avg = np.nanmean(np.vstack([r[key] for r in results]), axis=0)
-        lo, hi = chi2_bounds(d, runs)
-        out["blocks"][f"NIS gps {key[4:]}"] = {
-            "dim": d,
-            "lower": lo,
-            "upper": hi,
-            "mean": float(np.nanmean(avg)),
-            "share_inside": share_inside(avg, d, runs),
-        }
+        out["blocks"][f"NIS gps {key[4:]}"] = _block([r[key] for r in results], d, runs)
     nq = results[0]["rate_dim"]
     if nq:
-        avg = np.nanmean(np.vstack([r["rate_nis"] for r in results]), axis=0)
-        lo, hi = chi2_bounds(nq, runs)
-        out["blocks"]["NIS rate"] = {
-            "dim": nq,
-            "lower": lo,
-            "upper": hi,
-            "mean": float(np.nanmean(avg)),
-            "share_inside": share_inside(avg, nq, runs),
-        }
+        out["blocks"]["NIS rate"] = _block([r["rate_nis"] for r in results], nq, runs)
     out["att_rms_deg_median"] = float(np.median([r["att_rms_deg"] for r in results]))
     return out
 

@@ -85,6 +85,26 @@ def outward_directions(layout: ArrayLayout) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
+def draw_mounting_errors(
+    nominal: ArrayLayout,
+    outward_offset_m: float,
+    position_scatter_m: float,
+    axis_error_deg: float,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, MountingErrors]:
+    """Draw a cube's real mounting errors.
+
+    Returns the designed (known) position offsets (N, 3), m, outward from the
+    cube centre, and the real errors: those offsets plus an unknown scatter,
+    and axis errors, drawn in that order from ``rng``.
+    """
+    n = nominal.n_sensors
+    designed = outward_offset_m * outward_directions(nominal)
+    scatter = rng.normal(0.0, position_scatter_m, (n, 3))
+    axes = rng.normal(0.0, np.deg2rad(axis_error_deg), (n, 2))
+    return designed, MountingErrors(designed + scatter, axes)
+
+
 def _static_mean_mv(
     sensor: AccelerometerModel,
     real: ArrayLayout,
@@ -122,10 +142,9 @@ def build_hardware(scn: TiltTableScenario, rng: np.random.Generator) -> Hardware
     nominal = layout_by_name(scn.array.layout, scn.array.lever_arm_m)
     n = nominal.n_sensors
     m = scn.mounting
-    designed = m.outward_offset_m * outward_directions(nominal)
-    scatter = rng.normal(0.0, m.position_scatter_m, (n, 3))
-    axes = rng.normal(0.0, np.deg2rad(m.axis_error_deg), (n, 2))
-    true_errors = MountingErrors(designed + scatter, axes)
+    designed, true_errors = draw_mounting_errors(
+        nominal, m.outward_offset_m, m.position_scatter_m, m.axis_error_deg, rng
+    )
     scale_error = rng.normal(0.0, scn.sensor.scale_error, n)
     real = true_errors.real_layout(nominal)
     s = scn.sensor.sensitivity_mv_per_g

@@ -21,7 +21,7 @@ from ngnav.geodesy import LocalTangentPlane
 from ngnav.gps import GpsFixes, GpsReceiverModel
 from ngnav.layout import ArrayLayout, layout_by_name
 from ngnav.mounting import MountingErrors
-from ngnav.paper import outward_directions
+from ngnav.paper import draw_mounting_errors
 from ngnav.records import ArraySamples
 from ngnav.rotation import euler_from_quat
 from ngnav.runconfig import InitialSettings, RunConfig
@@ -99,10 +99,9 @@ def simulate_flight(scn: FlightScenario, run_index: int = 0) -> SimulatedRun:
     nominal = layout_by_name(scn.array.layout, scn.array.lever_arm_m)
     n = nominal.n_sensors
     m = scn.mounting
-    designed = m.outward_offset_m * outward_directions(nominal)
-    scatter = rng.normal(0.0, m.position_scatter_m, (n, 3))
-    axes = rng.normal(0.0, np.deg2rad(m.axis_error_deg), (n, 2))
-    true_errors = MountingErrors(designed + scatter, axes)
+    designed, true_errors = draw_mounting_errors(
+        nominal, m.outward_offset_m, m.position_scatter_m, m.axis_error_deg, rng
+    )
     scale_error = rng.normal(0.0, spec.scale_error, n)
     real = true_errors.real_layout(nominal)
     cal = bench_calibration(spec, real, nominal, scale_error, m.calibration_samples, rate, rng)
