@@ -5,9 +5,13 @@ or ``filterpy.kalman.update`` (Joseph form) with the F, Q, H, R built here.
 The nominal state (position, velocity, attitude quaternion, body rate,
 feature biases) is propagated by the array's compensated samples:
 
-- rate:      ``w_k = w_{k-1} + (wdot_k - b_wdot) dt``
+- rate:      ``w_k = w_{k-1} + (wdot_{k-1} + wdot_k - 2 b_wdot) dt / 2``
 - attitude:  ``q_k = q_{k-1} * exp((w_{k-1} + w_k) dt / 2)``
-- velocity:  ``v += (C_nb (f - b_f) + g) dt``, position by the trapezoid.
+- velocity:  ``v_k = v_{k-1} + (a_{k-1} + a_k) dt / 2`` with ``a = C_nb (f - b_f) + g``;
+  position by the trapezoid.
+
+Samples are instantaneous values at their times (as a simulation makes
+them); the trapezoid keeps the integration error second order in ``dt``.
 
 Samples are processed in blocks (``filter_rate_hz``, 100 Hz by default; a
 block also ends at every GPS fix time): the nominal state is propagated
@@ -34,6 +38,7 @@ from filters.state import ATT, B_F, B_WDOT, POS, RATE, VEL, StateLayout, b_quad
 from ngnav.conventions import gravity_n_mps2
 from ngnav.flight import quat_from_euler
 from ngnav.rotation import (
+    cross_rows,
     dcm_from_quat,
     euler_from_quat,
     quat_from_rotvec,
@@ -41,6 +46,22 @@ from ngnav.rotation import (
     quat_normalize,
     skew,
 )
+
+
+def _quadratic_form(y: np.ndarray, s: np.ndarray) -> float:
+    """``y^T S^-1 y`` for a symmetric positive definite S (closed form for 3 x 3)."""
+    if y.shape[0] != 3:
+        return float(y @ np.linalg.solve(s, y))
+    (a, b, c), (_, d, e), (_, _, f) = s.tolist()
+    # adjugate of the symmetric 3 x 3 matrix
+    ia, ib, ic = d * f - e * e, c * e - b * f, b * e - c * d
+    id_, ie, if_ = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * ia + b * ib + c * ic
+    x, yy, z = y.tolist()
+    num = (
+        ia * x * x + id_ * yy * yy + if_ * z * z + 2.0 * (ib * x * yy + ic * x * z + ie * yy * z)
+    )
+    return num / det if det > 0.0 else float("inf")
 
 
 class CovarianceError(RuntimeError):
@@ -59,11 +80,15 @@ class FilterNoise:
         Prior covariance of the feature biases (turn-on bias mapped through S).
     bias_rw_cov : array (k, k)
         Random-walk spectral density of the feature biases, per second.
+    position_sigma_m : float
+        Prior 1-sigma of each residual sensor-position error (per axis, m);
+        0 leaves the ``DR`` block out (see :mod:`filters.state`).
     """
 
     feature_cov: np.ndarray
     bias_prior_cov: np.ndarray
     bias_rw_cov: np.ndarray
+    position_sigma_m: float = 0.0
 
 
 @dataclass
@@ -109,6 +134,11 @@ class NavFilter:
         this probability is rejected (counted). 0.9999 by default.
     rate_measurement : bool
         Use the rate-quadratic terms as a rate measurement.
+    sensor_axes_b : array (N, 3), optional
+        Nominal sensing axes; with ``solve_matrix`` and a nonzero
+        ``noise.position_sigma_m`` they switch on the ``DR`` states.
+    solve_matrix : array (k, N), optional
+        The solve operator ``S`` (solved features from channel outputs).
     """
 
     noise: FilterNoise
@@ -116,11 +146,18 @@ class NavFilter:
     antenna_b_m: np.ndarray
     gate_probability: float = 0.9999
     rate_measurement: bool = True
+    sensor_axes_b: np.ndarray | None = None
+    solve_matrix: np.ndarray | None = None
     counters: Counters = field(default_factory=Counters)
 
     def __post_init__(self) -> None:
         self.quad_pairs = np.asarray(self.quad_pairs, dtype=int).reshape(-1, 2)
-        self.layout = StateLayout(self.quad_pairs.shape[0])
+        n_dr = 0
+        if self.noise.position_sigma_m > 0:
+            if self.sensor_axes_b is None or self.solve_matrix is None:
+                raise ValueError("position states need sensor_axes_b and solve_matrix")
+            n_dr = 3 * self.sensor_axes_b.shape[0]
+        self.layout = StateLayout(self.quad_pairs.shape[0], n_dr)
         n = self.layout.n
         k = 6 + self.layout.nq
         for name in ("feature_cov", "bias_prior_cov", "bias_rw_cov"):
@@ -139,13 +176,24 @@ class NavFilter:
         self.q = np.array([1.0, 0.0, 0.0, 0.0])
         self.w = np.zeros(3)
         self.bias = np.zeros(6 + self.layout.nq)
+        self.dr = np.zeros(n_dr)
         self._eye = np.eye(n)
+        self._eye3 = np.eye(3)
         self._g = gravity_n_mps2()
         self._sww = self.noise.feature_cov[0:3, 0:3]
         self._sff = self.noise.feature_cov[3:6, 3:6]
         self._sfw = self.noise.feature_cov[3:6, 0:3]
         self._sqq = self.noise.feature_cov[6:, 6:]
         self._consec_rejects = 0
+        self._last_wdot = np.zeros(3)
+        self._last_f = np.zeros(3)
+        # the constant part of the error dynamics, copied and filled per block
+        fc = np.zeros((n, n))
+        fc[POS, VEL] = np.eye(3)
+        fc[RATE, B_WDOT] = -np.eye(3)
+        self._fc_base = fc
+        self._t12 = np.eye(12)
+        self._q12_cache: dict[tuple[int, float], np.ndarray] = {}
 
     # ------------------------------------------------------------------ set-up
     def initialise(
@@ -174,15 +222,24 @@ class NavFilter:
         p[RATE, RATE] = np.eye(3) * rate_sigma_rps**2
         bs = self.layout.bias
         p[bs, bs] = self.noise.bias_prior_cov
+        dr = self.layout.dr
+        p[dr, dr] = np.eye(self.layout.n_dr) * self.noise.position_sigma_m**2
+        self.dr = np.zeros(self.layout.n_dr)
         self.P = p
         self.x = np.zeros(self.layout.n)
         self.check_covariance("initialisation")
 
     # ------------------------------------------------------------- propagation
     def propagate(
-        self, wdot: np.ndarray, f: np.ndarray, dt: float, block_cov: np.ndarray | None = None
+        self, wdot: np.ndarray, f: np.ndarray, dt: float, sg: np.ndarray | None = None
     ) -> np.ndarray:
         """Propagate through a block of K compensated samples.
+
+        Samples are instantaneous values at the sample times; the block runs
+        from the previous sample (the last one propagated, kept by the filter;
+        set by :meth:`set_last_sample` at the start) to the last sample of
+        ``wdot``/``f``. Rate, velocity and position are integrated by the
+        trapezoid rule, the attitude by the product of the sample rotations.
 
         Parameters
         ----------
@@ -190,9 +247,9 @@ class NavFilter:
             Angular acceleration (rad/s^2) and specific force (m/s^2), FRD.
         dt : float
             Sample interval, s.
-        block_cov : array (6, 6), optional
-            Covariance of an error of ``[wdot, f]`` common to all samples of
-            the block (the unknown part of the geometry), added to Q.
+        sg : array (k, 3N), optional
+            The block's sensitivity of the solved features to the sensor
+            positions (:meth:`geometry_jacobian`); required with ``DR`` states.
 
         Returns
         -------
@@ -200,41 +257,86 @@ class NavFilter:
             The nominal rate at each sample (for the rate measurement).
         """
         k = wdot.shape[0]
-        bw, bf = self.bias[0:3], self.bias[3:6]
-        w_prev = self.w
-        w = w_prev + np.cumsum(wdot - bw, axis=0) * dt
-        w_start = np.vstack([w_prev, w[:-1]])
-        alpha = 0.5 * (w_start + w) * dt  # rotation vector of each sample interval
-        # attitude at each sample's mid-interval relative to the block start (second order)
-        cum = np.cumsum(alpha, axis=0) - 0.5 * alpha
-        f_c = f - bf
+        bw, bf = self._feature_offset(sg)
+        h = 0.5 * dt
+        # rate at the K + 1 sample times of the block (trapezoid of wdot)
+        wd = np.concatenate([self._last_wdot[None], wdot]) - bw
+        w_all = np.empty((k + 1, 3))
+        w_all[0] = self.w
+        np.cumsum((wd[:-1] + wd[1:]) * h, axis=0, out=w_all[1:])
+        w_all[1:] += self.w
+        alpha = (w_all[:-1] + w_all[1:]) * h  # rotation vector of each sample interval
+        # attitude at each sample time relative to the block start (second order)
+        cum = np.empty((k + 1, 3))
+        cum[0] = 0.0
+        np.cumsum(alpha, axis=0, out=cum[1:])
+        f_c = np.concatenate([self._last_f[None], f]) - bf
         # rotate f_k by exp(cum_k) to the block-start body frame, to second order
-        cf = np.cross(cum, f_c)
-        f_b0 = f_c + cf + 0.5 * np.cross(cum, cf)
+        cf = cross_rows(cum, f_c)
+        f_b0 = f_c + cf + 0.5 * cross_rows(cum, cf)
         c0 = dcm_from_quat(self.q)
-        a_n = f_b0 @ c0.T
         pa = self.P[ATT, ATT]
-        a_n = a_n + 0.5 * (a_n @ (pa - np.trace(pa) * np.eye(3)).T) + self._g
-        v_steps = self.vel + np.cumsum(a_n, axis=0) * dt
-        v_start = np.vstack([self.vel, v_steps[:-1]])
-        self.pos = self.pos + 0.5 * np.sum(v_start + v_steps, axis=0) * dt
+        # E[C f] = (I + (P_att - tr(P_att) I) / 2) C f  (second order in the attitude error)
+        m = c0 + 0.5 * (pa - np.trace(pa) * self._eye3) @ c0
+        a_n = f_b0 @ m.T
+        a_n += self._g
+        v_all = np.empty((k + 1, 3))
+        v_all[0] = self.vel
+        np.cumsum((a_n[:-1] + a_n[1:]) * h, axis=0, out=v_all[1:])
+        v_all[1:] += self.vel
+        self.pos = self.pos + (v_all.sum(axis=0) - 0.5 * (v_all[0] + v_all[-1])) * dt
         # attitude: exact product of the sample rotations, with the coning term
-        rot = np.sum(alpha, axis=0) + 0.5 * np.sum(
-            np.cross(np.cumsum(alpha, axis=0) - alpha, alpha), axis=0
-        )
+        rot = cum[-1] + 0.5 * cross_rows(cum[:-1], alpha).sum(axis=0)
         self.q = quat_normalize(quat_multiply(self.q, quat_from_rotvec(rot)))
-        self.vel = v_steps[-1]
-        self.w = w[-1]
+        self.vel = v_all[-1]
+        w = w_all[1:]
+        self.w = w[-1].copy()
+        self._last_wdot = wdot[-1].copy()
+        self._last_f = f[-1].copy()
         self.t_s += k * dt
-        self._predict_covariance(k, dt, c0, np.mean(a_n, axis=0) - self._g, block_cov)
+        f_n = a_n[1:].sum(axis=0) * (1.0 / k) - self._g
+        self._predict_covariance(k, dt, c0, f_n, sg)
         self.counters.blocks += 1
         self.counters.samples += k
         return w
 
+    def _feature_offset(self, sg: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """What the nominal removes from ``wdot`` and ``f``: biases plus ``S G dr_hat``."""
+        bw, bf = self.bias[0:3], self.bias[3:6]
+        if self.layout.n_dr:
+            if sg is None:
+                raise ValueError("a filter with position states needs the block's sg")
+            off = sg[0:6] @ self.dr
+            bw, bf = bw + off[0:3], bf + off[3:6]
+        return bw, bf
+
+    def geometry_jacobian(self, wdot_b_rps2: np.ndarray, omega_b_rps: np.ndarray) -> np.ndarray:
+        """Sensitivity (k, 3N) of the solved features to the sensor positions.
+
+        A sensor at ``r_i + dr_i`` reads ``theta_i . (wdot x dr_i + w x (w x dr_i))``
+        more than at ``r_i``: row ``i`` of ``G`` is ``theta_i^T M`` with
+        ``M = [wdot]x + [w]x^2``, and the features see ``S G``.
+
+        Parameters
+        ----------
+        wdot_b_rps2, omega_b_rps : arrays (3,)
+            The block's angular acceleration and rate, FRD.
+        """
+        sw = skew(omega_b_rps)
+        m = skew(wdot_b_rps2) + sw @ sw
+        tm = self.sensor_axes_b @ m  # (N, 3)
+        s = self.solve_matrix
+        return (s[:, :, None] * tm[None, :, :]).reshape(s.shape[0], -1)
+
+    def set_last_sample(self, wdot: np.ndarray, f: np.ndarray) -> None:
+        """The compensated sample at the filter's current time (FRD; rad/s^2, m/s^2)."""
+        self._last_wdot = np.array(wdot, dtype=float)
+        self._last_f = np.array(f, dtype=float)
+
     def _predict_covariance(
-        self, k: int, dt: float, c: np.ndarray, f_n: np.ndarray, block_cov: np.ndarray | None
+        self, k: int, dt: float, c: np.ndarray, f_n: np.ndarray, sg: np.ndarray | None
     ) -> None:
-        phi, q = self.propagation_matrices(k, dt, c, f_n, block_cov)
+        phi, q = self.propagation_matrices(k, dt, c, f_n, sg)
         self.x, self.P = kf_predict(self.x, self.P, phi, q)
         self._symmetrise()
 
@@ -244,7 +346,7 @@ class NavFilter:
         dt: float,
         c: np.ndarray,
         f_n: np.ndarray,
-        block_cov: np.ndarray | None = None,
+        sg: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Transition F and process noise Q over a block of ``k`` samples.
 
@@ -256,47 +358,59 @@ class NavFilter:
             ``C_nb`` at the block start.
         f_n : array (3,)
             Mean specific force over the block, NED, m/s^2.
+        sg : array (k, 3N), optional
+            Feature sensitivity to the sensor positions (with ``DR`` states).
         """
         n = self.layout.n
         t = k * dt
-        fc = np.zeros((n, n))
-        fc[POS, VEL] = np.eye(3)
+        fc = self._fc_base.copy()
         fc[VEL, ATT] = -skew(f_n)
         fc[VEL, B_F] = -c
         fc[ATT, RATE] = c
-        fc[RATE, B_WDOT] = -np.eye(3)
+        if self.layout.n_dr:
+            dr = self.layout.dr
+            fc[RATE, dr] = -sg[0:3]
+            fc[VEL, dr] = -c @ sg[3:6]
         ft = fc * t
         ft2 = ft @ ft
-        phi = self._eye + ft + 0.5 * ft2 + ft2 @ ft / 6.0
-        # noise of the k samples, summed exactly for constant C (see module docstring)
-        s1 = k * (k - 1) / 2.0
-        s2 = (k - 1) * k * (2 * k - 1) / 6.0
-        cww = c @ self._sww
-        cff = c @ self._sff @ c.T
-        cfw = c @ self._sfw
-        cfwc = cfw @ c.T
+        phi = self._eye + ft + ft2 @ (0.5 * self._eye + ft / 6.0)
+        # noise of the k samples, summed exactly for constant C: body-frame blocks rotated
+        t12 = self._t12
+        t12[0:3, 0:3] = c
+        t12[3:6, 3:6] = c
+        t12[6:9, 6:9] = c
+        q12 = t12 @ self._q12_body(k, dt) @ t12.T
         q = np.zeros((n, n))
-        q[RATE, RATE] = k * dt**2 * self._sww
-        q[ATT, RATE] = s1 * dt**3 * cww
-        q[ATT, ATT] = s2 * dt**4 * cww @ c.T
-        q[VEL, VEL] = k * dt**2 * cff
-        q[POS, VEL] = s1 * dt**3 * cff
-        q[POS, POS] = s2 * dt**4 * cff
-        q[VEL, RATE] = k * dt**2 * cfw
-        q[VEL, ATT] = s1 * dt**3 * cfwc
-        q[POS, RATE] = s1 * dt**3 * cfw
-        q[POS, ATT] = s2 * dt**4 * cfwc
+        q[:12, :12] = q12
         bs = self.layout.bias
         q[bs, bs] = self.noise.bias_rw_cov * t
-        q = np.triu(q) + np.triu(q, 1).T
-        if block_cov is not None:
-            gam = np.zeros((n, 6))
-            gam[RATE, 0:3] = -t * np.eye(3)
-            gam[ATT, 0:3] = -0.5 * t * t * c
-            gam[VEL, 3:6] = -t * c
-            gam[POS, 3:6] = -0.5 * t * t * c
-            q = q + gam @ block_cov @ gam.T
         return phi, q
+
+    def _q12_body(self, k: int, dt: float) -> np.ndarray:
+        """Navigation-block noise (12, 12) of ``k`` samples with ``C = I`` (cached per k).
+
+        A feature-noise sample ``n = [n_w, n_f]`` at step ``j`` of ``k`` enters
+        the rate as ``dt n_w``, the attitude as ``(k - j) dt^2 n_w``, the
+        velocity as ``dt n_f`` and the position as ``(k - j) dt^2 n_f``; the
+        sums over ``j`` of 1, ``(k - j)`` and ``(k - j)^2`` give the weights.
+        """
+        key = (k, dt)
+        qb = self._q12_cache.get(key)
+        if qb is None:
+            s0 = k * dt**2
+            s1 = k * (k - 1) / 2.0 * dt**3
+            s2 = (k - 1) * k * (2 * k - 1) / 6.0 * dt**4
+            sff, sfw, sww = self._sff, self._sfw, self._sww
+            qb = np.block(
+                [
+                    [s2 * sff, s1 * sff, s2 * sfw, s1 * sfw],
+                    [s1 * sff, s0 * sff, s1 * sfw, s0 * sfw],
+                    [s2 * sfw.T, s1 * sfw.T, s2 * sww, s1 * sww],
+                    [s1 * sfw.T, s0 * sfw.T, s1 * sww, s0 * sww],
+                ]
+            )
+            self._q12_cache[key] = qb
+        return qb
 
     # ------------------------------------------------------------- measurements
     def update_rate(
@@ -304,23 +418,26 @@ class NavFilter:
         quad_mean: np.ndarray,
         w_block: np.ndarray,
         k: int,
-        extra_cov: np.ndarray | None = None,
+        sg: np.ndarray | None = None,
     ) -> float | None:
         """Update with a block's mean solved rate-quadratic terms (nq,); returns the NIS.
 
-        ``extra_cov`` (nq, nq) is added to the noise: an error common to the
-        block's samples (the unknown part of the geometry).
+        ``sg`` is the block's :meth:`geometry_jacobian` (with ``DR`` states).
         """
         nq = self.layout.nq
         if nq == 0 or not self.rate_measurement:
             return None
-        pred, h = self.rate_model(w_block)
-        pred = pred + self.P[RATE, RATE][self.quad_pairs[:, 0], self.quad_pairs[:, 1]]
-        pred = pred + self.bias[6:]
-        r = self._sqq / k if extra_cov is None else self._sqq / k + extra_cov
+        prr = self.P[RATE, RATE]
+        pred, h = self.rate_model(w_block, sg, np.diag(prr))
+        i, j = self.quad_pairs[:, 0], self.quad_pairs[:, 1]
+        pred = pred + prr[i, j] + self.bias[6:]
+        # second order: the spread of d_i d_j about its mean P_ij
+        r = self._sqq / k + np.diag(prr[i, i] * prr[j, j] + prr[i, j] ** 2)
+        if self.layout.n_dr:
+            pred = pred + sg[6:] @ self.dr
         y = quad_mean - pred
         s = h @ self.P @ h.T + r
-        nis = float(y @ np.linalg.solve(s, y))
+        nis = _quadratic_form(y, s)
         if nis > self.gate_q:
             self.counters.rate_rejected += 1
             return nis
@@ -329,20 +446,40 @@ class NavFilter:
         self.counters.rate_updates += 1
         return nis
 
-    def rate_model(self, w_block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def rate_model(
+        self,
+        w_block: np.ndarray,
+        sg: np.ndarray | None = None,
+        rate_var: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Block-mean quadratic terms (nq,) of the rates (K, 3) and their Jacobian (nq, n).
 
         The rate error is the same at every sample of a block, so the Jacobian
-        is the block mean of ``d(w_i w_j)/dw``; the bias block is the identity.
+        is the block mean of ``d(w_i w_j)/dw``; the bias block is the identity,
+        the ``DR`` block the quadratic rows of ``sg``.
+
+        ``rate_var`` (3,), the variances of the rate estimate, shrinks each
+        rate in the Jacobian to ``sign(w) sqrt(max(0, w^2 - var))``, the
+        unbiased estimate of its size. A product ``w_i w_j`` tells about
+        ``w_j`` only as much as the *true* ``w_i`` is large; near zero rate an
+        estimate ``w_i`` made of its own error would claim information that
+        the measurement does not hold (a straight flight's yaw rate would
+        look measured and the heading would turn overconfident).
         """
         nq = self.layout.nq
         i, j = self.quad_pairs[:, 0], self.quad_pairs[:, 1]
-        pred = np.mean(w_block[:, i] * w_block[:, j], axis=0)
+        inv_k = 1.0 / w_block.shape[0]
+        pred = (w_block[:, i] * w_block[:, j]).sum(axis=0) * inv_k
+        w_mean = w_block.sum(axis=0) * inv_k
+        if rate_var is not None:
+            w_mean = np.sign(w_mean) * np.sqrt(np.maximum(w_mean**2 - rate_var, 0.0))
         h = np.zeros((nq, self.layout.n))
         rows = np.arange(nq)
-        h[rows, 9 + i] += np.mean(w_block[:, j], axis=0)
-        h[rows, 9 + j] += np.mean(w_block[:, i], axis=0)
+        h[rows, 9 + i] += w_mean[j]
+        h[rows, 9 + j] += w_mean[i]
         h[:, b_quad(nq)] = np.eye(nq)
+        if self.layout.n_dr:
+            h[:, self.layout.dr] = sg[6:]
         return pred, h
 
     def gps_model(
@@ -395,7 +532,7 @@ class NavFilter:
 
     def _gated_update(self, y: np.ndarray, r: np.ndarray, h: np.ndarray) -> tuple[float, bool]:
         s = h @ self.P @ h.T + r
-        nis = float(y @ np.linalg.solve(s, y))
+        nis = _quadratic_form(y, s)
         if not np.isfinite(nis) or nis > self.gate3:
             return nis, False
         self.x, self.P = kf_update(self.x, self.P, y, r, h)
@@ -452,22 +589,36 @@ class NavFilter:
         self.q = quat_normalize(quat_multiply(quat_from_rotvec(dth), self.q))
         self.w = self.w + dx[RATE]
         self.bias = self.bias + dx[self.layout.bias]
-        # reset Jacobian of the attitude error (first order)
-        g = self._eye.copy()
-        g[ATT, ATT] -= 0.5 * skew(dth)
-        self.P = g @ self.P @ g.T
+        self.dr = self.dr + dx[self.layout.dr]
+        # reset Jacobian of the attitude error (first order): G = I except G[ATT, ATT]
+        ga = np.eye(3) - 0.5 * skew(dth)
+        p = self.P
+        p[ATT, :] = ga @ p[ATT, :]
+        p[:, ATT] = p[:, ATT] @ ga.T
+        self.P = 0.5 * (p + p.T)
         self.x = np.zeros_like(self.x)
-        self._symmetrise()
 
     def _symmetrise(self) -> None:
         self.P = 0.5 * (self.P + self.P.T)
 
-    def check_covariance(self, where: str) -> None:
-        """Raise :class:`CovarianceError` unless P is finite, symmetric and positive definite."""
+    def check_covariance(self, where: str, full: bool = True) -> None:
+        """Raise :class:`CovarianceError` unless P is finite, symmetric and positive definite.
+
+        ``full=False`` is the per-block check: finite with a positive diagonal
+        (P is symmetrised after every step). The full check adds symmetry and
+        a Cholesky factorisation (positive definite); the pipeline runs it at
+        every GPS fix and once a second.
+        """
         p = self.P
-        if not np.all(np.isfinite(p)):
+        if not np.isfinite(p).all():
             raise CovarianceError(f"covariance not finite after {where} at t = {self.t_s:.3f} s")
-        if not np.allclose(p, p.T, rtol=1e-9, atol=1e-15):
+        if not full:
+            if np.diagonal(p).min() <= 0.0:
+                raise CovarianceError(
+                    f"covariance has a non-positive variance after {where} at t = {self.t_s:.3f} s"
+                )
+            return
+        if np.abs(p - p.T).max() > 1e-9 * np.abs(p).max():
             raise CovarianceError(f"covariance not symmetric after {where} at t = {self.t_s:.3f} s")
         try:
             np.linalg.cholesky(p)

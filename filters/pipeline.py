@@ -21,7 +21,7 @@ is the filter's own rate estimate, so the compensation does not drift.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from filterpy.kalman import predict as kf_predict
@@ -38,7 +38,7 @@ from ngnav.gps import GpsFixes
 from ngnav.layout import ArrayLayout, kinematic_features, rate_quadratics
 from ngnav.predictors import GreyPredictor, LastValuePredictor, LinePredictor
 from ngnav.records import ArraySamples, freeze_fields
-from ngnav.rotation import dcm_from_quat, euler_from_quat, skew
+from ngnav.rotation import dcm_from_quat, euler_from_quat
 from ngnav.runconfig import RunConfig
 
 #: Consecutive rejected GPS positions after which the filter is put back on the fix.
@@ -94,7 +94,10 @@ class GpsInnovations:
 
 @dataclass(frozen=True)
 class RunResult:
-    """Estimates, GPS innovations, rate-measurement NIS and the run's counters."""
+    """Estimates, GPS innovations, rate-measurement NIS and the run's counters.
+
+    ``rate_dim`` is the rate measurement's size, ``state_size`` the error state's.
+    """
 
     estimates: Estimates
     innovations: GpsInnovations
@@ -102,6 +105,7 @@ class RunResult:
     counts: dict[str, int]
     compensation: str
     rate_dim: int = field(default=3)
+    state_size: int = 0
 
 
 def _predictor(name: str, window: int, shift: np.ndarray):
@@ -123,6 +127,7 @@ def filter_noise(solver: ArraySolver, cfg: RunConfig) -> FilterNoise:
         feature_cov=solver.covariance(),
         bias_prior_cov=s @ np.diag(b0**2) @ s.T,
         bias_rw_cov=s @ np.diag(cfg.bias_rw_mps2_rts**2) @ s.T,
+        position_sigma_m=cfg.position_sigma_m,
     )
 
 
@@ -233,7 +238,17 @@ def run_filter(
     i_start = int(fix_idx[first])
 
     noise = filter_noise(solver, cfg)
-    nf = NavFilter(noise, pairs, cfg.antenna_b_m, cfg.filter.gate_probability)
+    if method == "oracle":
+        # the oracle removes the whole geometry error: nothing left to estimate
+        noise = replace(noise, position_sigma_m=0.0)
+    nf = NavFilter(
+        noise,
+        pairs,
+        cfg.antenna_b_m,
+        cfg.filter.gate_probability,
+        sensor_axes_b=cfg.layout.axes_b,
+        solve_matrix=smat,
+    )
     nq = pairs.shape[0]
     g_ranges = np.repeat(
         [
@@ -352,48 +367,57 @@ def run_filter(
     hist = np.empty((n_e + window, 9))
     hist[:window] = np.concatenate([nf.w, seed_mean[0:3], seed_mean[3:6]])
     last_mean = seed_mean.copy()
+    first_row = sa[i_start] if not invalid[i_start] else seed_mean
+    if se is not None:
+        h0 = hist[0]
+        first_row = first_row - se @ np.concatenate([h0[3:6], h0[6:9], rate_quadratics(h0[0:3])])
+    nf.set_last_sample(first_row[0:3], first_row[3:6])
     inn_t, inn_p, inn_v, inn_pa, inn_va = [], [], [], [], []
     rate_nis = []
     n_fallbacks = 0
-    geom_axes = cfg.layout.axes_b if cfg.position_sigma_m > 0 and method != "oracle" else None
-    geom_var = cfg.position_sigma_m**2
+    with_dr = nf.layout.n_dr > 0
+    phi_hat = np.zeros(12) if predictor is not None else None
+    full_check_every = max(1, round(cfg.filter.rate_hz))  # the Cholesky check once a second
     i0 = i_start
     for e, i1 in enumerate(ends_arr, start=1):
         xs = sa[i0 + 1 : i1 + 1].copy()
         bad = invalid[i0 + 1 : i1 + 1]
         kk = xs.shape[0]
-        phi_hat = None
         if predictor is not None:
             x_hat, nfb = predictor.forecast(hist[e - 1 : e - 1 + window], e - 1)
             n_fallbacks += nfb
-            phi_hat = np.concatenate([x_hat[3:6], x_hat[6:9], rate_quadratics(x_hat[0:3])])
+            wx, wy, wz = x_hat[0:3].tolist()
+            phi_hat[0:6] = x_hat[3:9]
+            phi_hat[6:] = (wx * wx, wy * wy, wz * wz, wy * wz, wx * wz, wx * wy)
             xs -= se @ phi_hat
         if np.any(bad):
             fill = last_mean if phi_hat is None else phi_hat[cols]
             xs[bad] = fill
         n_ok = kk - int(np.count_nonzero(bad))
-        geom = None
-        if geom_axes is not None:
-            # unknown position error: dA_i = theta_i . (wdot x dr + w x (w x dr)), per block
-            wd_m = xs[:, 0:3].mean(axis=0)
-            mm = skew(wd_m) + skew(nf.w) @ skew(nf.w)
-            var = geom_var * np.sum((geom_axes @ mm) ** 2, axis=1)
-            geom = (smat * var) @ smat.T
-        w_blk = nf.propagate(xs[:, 0:3], xs[:, 3:6], dt, None if geom is None else geom[0:6, 0:6])
+        sg = sg_true = None
+        if with_dr:
+            # the sensor-position states see the block's mean motion
+            wd_m = xs[:, 0:3].sum(axis=0) * (1.0 / kk) - nf.bias[0:3]
+            sg = nf.geometry_jacobian(wd_m, nf.w + 0.5 * kk * dt * wd_m)
+            if p_bound is not None:
+                blk = slice(i0 + 1, i1 + 1)
+                sg_true = nf.geometry_jacobian(
+                    truth.omega_dot_b_rps2[blk].mean(axis=0), w_true[blk].mean(axis=0)
+                )
+        w_blk = nf.propagate(xs[:, 0:3], xs[:, 3:6], dt, sg)
         if p_bound is not None:
             f_n_true = np.mean(
                 np.einsum("kij,kj->ki", c_true[i0 + 1 : i1 + 1], truth.f_b_mps2[i0 + 1 : i1 + 1]),
                 axis=0,
             )
-            fb, qb = nf.propagation_matrices(kk, dt, c_true[i0], f_n_true)
+            fb, qb = nf.propagation_matrices(kk, dt, c_true[i0], f_n_true, sg_true)
             _, p_bound = kf_predict(np.zeros(nf.layout.n), p_bound, fb, qb)
         if n_ok and nq:
-            nis = nf.update_rate(
-                xs[~bad, 6:].mean(axis=0), w_blk, n_ok, None if geom is None else geom[6:, 6:]
-            )
+            quad = xs[:, 6:] if n_ok == kk else xs[~bad, 6:]
+            nis = nf.update_rate(quad.sum(axis=0) * (1.0 / n_ok), w_blk, n_ok, sg)
             rate_nis.append(np.nan if nis is None else nis)
             if p_bound is not None and nis is not None and nis <= nf.gate_q:
-                _, hb = nf.rate_model(w_true[i0 + 1 : i1 + 1])
+                _, hb = nf.rate_model(w_true[i0 + 1 : i1 + 1], sg_true)
                 _, p_bound = kf_update(
                     np.zeros(nf.layout.n),
                     p_bound,
@@ -401,8 +425,8 @@ def run_filter(
                     noise.feature_cov[6:, 6:] / n_ok,
                     hb,
                 )
-        good = xs[~bad] if n_ok else xs
-        last_mean = good.mean(axis=0)
+        good = xs[~bad] if 0 < n_ok < kk else xs
+        last_mean = good.sum(axis=0) * (1.0 / good.shape[0])
         hist[e - 1 + window] = np.concatenate([nf.w, last_mean[0:3], last_mean[3:6]])
         for m in fixes_at.get(int(i1), []):
             if not use_gps:
@@ -442,7 +466,7 @@ def run_filter(
                     course_sigma = float(np.arctan2(3 * fixes.vel_acc_mps[m], speed))
                     nf.set_heading(float(np.arctan2(vh[1], vh[0])), course_sigma)
                     heading_pending = False
-        nf.check_covariance("block")
+        nf.check_covariance("block", full=int(i1) in fixes_at or e % full_check_every == 0)
         record(e)
         i0 = i1
         if progress is not None and e % 2000 == 0:
@@ -469,7 +493,9 @@ def run_filter(
         np.array(inn_pa, dtype=bool),
         np.array(inn_va, dtype=bool),
     )
-    return RunResult(estimates, innovations, np.array(rate_nis), counts, method, nq)
+    return RunResult(
+        estimates, innovations, np.array(rate_nis), counts, method, nq, nf.layout.n
+    )
 
 
 def geodetic_estimates(est: Estimates, cfg: RunConfig) -> tuple[np.ndarray, ...]:

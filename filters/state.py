@@ -12,6 +12,7 @@ RATE       3      body-rate error, FRD, rad/s
 B_WDOT     3      bias of the solved angular acceleration, FRD, rad/s^2
 B_F        3      bias of the solved specific force, FRD, m/s^2
 B_QUAD     nq     bias of the solved rate-quadratic terms, rad^2/s^2
+DR         3N     residual sensor-position errors ``dr_i``, FRD, m (optional)
 =========  =====  ==============================================================
 
 Why these biases: each channel's bias ``beta_i`` enters the solved features as
@@ -25,6 +26,16 @@ observable whenever the rate is held by the integrated angular acceleration
 and the GPS-held attitude. So all nine are carried, as the 9-D image of the
 channel biases, with a prior and random walk mapped through ``S`` (so the
 three blocks start correlated exactly as the channel biases make them).
+
+Why ``DR``: the calibration (multi-position, at rest) finds the sensing axes
+but cannot see where each sensitive element sits; what is left after the
+drawings (``dr_i``, 0.5 mm per axis is typical) makes channel errors
+``theta_i . (wdot x dr_i + w x (w x dr_i))``. They are constant but enter
+through the motion, so they act as a bias that changes with every manoeuvre;
+as white noise they leave the filter overconfident. Carried as states they are
+exact (linear in ``dr``) and estimated in flight: the in-flight part of the
+position calibration. The block is present when the configuration gives a
+nonzero position uncertainty (``position_sigma_m``).
 """
 
 from __future__ import annotations
@@ -50,14 +61,20 @@ def b_quad(nq: int) -> slice:
 
 @dataclass(frozen=True)
 class StateLayout:
-    """Error-state size for a layout with ``nq`` solved rate-quadratic terms."""
+    """Error-state size: ``nq`` solved rate-quadratic terms, ``n_dr`` position states."""
 
     nq: int
+    n_dr: int = 0
 
     @property
     def n(self) -> int:
         """Total error-state size."""
-        return N_BASE + self.nq
+        return N_BASE + self.nq + self.n_dr
+
+    @property
+    def dr(self) -> slice:
+        """The sensor-position error block (3N or empty)."""
+        return slice(N_BASE + self.nq, N_BASE + self.nq + self.n_dr)
 
     @property
     def bias(self) -> slice:

@@ -186,6 +186,29 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_filter(args: argparse.Namespace) -> int:
+    from filters.bench import run_filter_bench
+
+    b = run_filter_bench(_flight(args), seconds=args.seconds, repeats=args.repeats)
+    print(
+        f"{b.scenario}: first {args.seconds:g} s, {b.samples} samples at {b.array_rate_hz:g} Hz, "
+        f"filter at {b.filter_rate_hz:g} Hz ({b.blocks} blocks), {b.gps_fixes} GPS fixes at "
+        f"{b.gps_rate_hz:g} Hz, {b.state_size} error states; median of {args.repeats}, one core"
+    )
+    rt = b.array_rate_hz
+    print(
+        f"  full pipeline      {b.pipeline_samples_per_s:10,.0f} samples/s "
+        f"({b.pipeline_samples_per_s / rt:6.1f}x real time)"
+    )
+    print(
+        f"  bare filterpy loop {b.bare_samples_per_s:10,.0f} samples/s "
+        f"({b.bare_samples_per_s / rt:6.1f}x real time)"
+    )
+    print(f"  pipeline / bare loop time: {b.slowdown:.2f}x")
+    print("  pipeline runs (s): " + ", ".join(f"{t:.2f}" for t in b.pipeline_s))
+    return 0
+
+
 def _flight(args: argparse.Namespace):
     from ngnav.flight_scenario import is_flight_scenario, load_flight
 
@@ -357,6 +380,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, default=20_000)
     p.add_argument("--repeats", type=int, default=5)
     p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser(
+        "bench-filter", help="speed of the whole GPS/array pipeline beside a bare filterpy loop"
+    )
+    _add_flight_args(p)
+    p.add_argument("--seconds", type=float, default=120.0, help="flight seconds timed (default: %(default)s)")
+    p.add_argument("--repeats", type=int, default=5)
+    p.set_defaults(func=cmd_bench_filter)
     return parser
 
 

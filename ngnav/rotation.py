@@ -2,10 +2,14 @@
 
 All functions accept arrays with any number of leading dimensions and a last
 axis of 4 (quaternions) or 3 (vectors). ``q_nb`` rotates body vectors into
-NED (see :mod:`ngnav.conventions`).
+NED (see :mod:`ngnav.conventions`). Single quaternions and vectors take a
+scalar fast path (the filter calls these once per block; numpy's generic
+stacking costs more than the arithmetic there).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -14,6 +18,17 @@ def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product ``p * q``, shapes (..., 4)."""
     p = np.asarray(p, dtype=float)
     q = np.asarray(q, dtype=float)
+    if p.ndim == 1 and q.ndim == 1:
+        pw, px, py, pz = p.tolist()
+        qw, qx, qy, qz = q.tolist()
+        return np.array(
+            [
+                pw * qw - px * qx - py * qy - pz * qz,
+                pw * qx + px * qw + py * qz - pz * qy,
+                pw * qy - px * qz + py * qw + pz * qx,
+                pw * qz + px * qy - py * qx + pz * qw,
+            ]
+        )
     pw, px, py, pz = np.moveaxis(p, -1, 0)
     qw, qx, qy, qz = np.moveaxis(q, -1, 0)
     return np.stack(
@@ -36,6 +51,11 @@ def quat_conjugate(q: np.ndarray) -> np.ndarray:
 def quat_normalize(q: np.ndarray) -> np.ndarray:
     """Unit quaternion with a non-negative scalar part, shape (..., 4)."""
     q = np.asarray(q, dtype=float)
+    if q.ndim == 1:
+        w, x, y, z = q.tolist()
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        n = -n if w < 0.0 else n
+        return np.array([w / n, x / n, y / n, z / n])
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., :1] < 0.0, -q, q)
 
@@ -46,6 +66,11 @@ def quat_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
     Accurate for small angles (uses the series of sin(x)/x below 1e-4 rad).
     """
     rotvec = np.asarray(rotvec, dtype=float)
+    if rotvec.ndim == 1:
+        x, y, z = rotvec.tolist()
+        a = math.sqrt(x * x + y * y + z * z)
+        k1 = 0.5 - a * a / 48.0 if a < 1e-4 else math.sin(0.5 * a) / a
+        return np.array([math.cos(0.5 * a), k1 * x, k1 * y, k1 * z])
     angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
     half = 0.5 * angle
     small = angle < 1e-4
@@ -80,6 +105,15 @@ def quat_from_axis_angle(axis: np.ndarray, angle_rad: np.ndarray | float) -> np.
 def dcm_from_quat(q: np.ndarray) -> np.ndarray:
     """Rotation matrix ``C_nb`` (..., 3, 3) from ``q_nb`` (..., 4): ``v_n = C_nb @ v_b``."""
     q = quat_normalize(q)
+    if q.ndim == 1:
+        w, x, y, z = q.tolist()
+        return np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+            ]
+        )
     w, x, y, z = np.moveaxis(q, -1, 0)
     return np.stack(
         [
@@ -109,8 +143,20 @@ def euler_from_quat(q: np.ndarray) -> np.ndarray:
 def skew(v: np.ndarray) -> np.ndarray:
     """Skew matrix ``[v]x`` (..., 3, 3) with ``skew(v) @ n == cross(v, n)``."""
     v = np.asarray(v, dtype=float)
+    if v.ndim == 1:
+        x, y, z = v.tolist()
+        return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
     x, y, z = np.moveaxis(v, -1, 0)
     o = np.zeros_like(x)
     return np.stack(
         [np.stack([o, -z, y], -1), np.stack([z, o, -x], -1), np.stack([-y, x, o], -1)], axis=-2
     )
+
+
+_YZX = np.array([1, 2, 0])
+_ZXY = np.array([2, 0, 1])
+
+
+def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of (K, 3) arrays (``np.cross`` without its axis handling)."""
+    return a[:, _YZX] * b[:, _ZXY] - a[:, _ZXY] * b[:, _YZX]

@@ -1,0 +1,122 @@
+"""Speed benchmark of the whole GPS/array pipeline beside a bare filterpy loop.
+
+``ngnav bench-filter`` simulates a flight scenario (``uav-survey`` by
+default: 1 kHz array, 5 Hz GPS), keeps its first ``seconds`` of flight, and
+times :func:`filters.pipeline.run_filter` on it: array solve, GM(1,1)
+compensation, nominal propagation, filter prediction, the rate measurement
+and the GPS updates: everything a recorded run goes through except file
+reading. Beside it, in the same process and on the same core, it times a
+*bare* filterpy loop with the same state size and the same number of
+predictions and updates (random but fixed F, Q, H, R): the floor set by
+filterpy itself. Wall-clock figures on shared machines are noisy: the median
+of several repeats is reported, and the ratio of the two is the figure to
+compare between machines.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from dataclasses import dataclass, fields
+
+import numpy as np
+from filterpy.kalman import predict as kf_predict
+from filterpy.kalman import update as kf_update
+
+from filters.pipeline import run_filter
+from ngnav.bench import _pin_one_core
+from ngnav.flight_scenario import FlightScenario
+from ngnav.gps import GpsFixes
+from ngnav.records import ArraySamples
+from ngnav.simulate import simulate_flight
+
+
+@dataclass(frozen=True)
+class FilterBench:
+    """Timings (s) of the pipeline and of the bare loop over the same run."""
+
+    scenario: str
+    samples: int
+    blocks: int
+    gps_fixes: int
+    state_size: int
+    array_rate_hz: float
+    filter_rate_hz: float
+    gps_rate_hz: float
+    pipeline_s: tuple[float, ...]
+    bare_s: tuple[float, ...]
+
+    @property
+    def pipeline_samples_per_s(self) -> float:
+        return self.samples / statistics.median(self.pipeline_s)
+
+    @property
+    def bare_samples_per_s(self) -> float:
+        return self.samples / statistics.median(self.bare_s)
+
+    @property
+    def slowdown(self) -> float:
+        """Pipeline time over bare-loop time (medians)."""
+        return statistics.median(self.pipeline_s) / statistics.median(self.bare_s)
+
+
+def _first_seconds(samples: ArraySamples, fixes: GpsFixes, seconds: float):
+    n = int(np.searchsorted(samples.t_s, samples.t_s[0] + seconds, side="right"))
+    keep = fixes.t_s <= samples.t_s[n - 1]
+    sliced = {f.name: getattr(fixes, f.name)[keep] for f in fields(fixes)}
+    return ArraySamples(samples.t_s[:n], samples.accel_mps2[:n]), GpsFixes(**sliced)
+
+
+def bare_loop(n_state: int, n_blocks: int, n_rate: int, n_fixes: int, seed: int = 0) -> float:
+    """Seconds for filterpy alone: ``n_blocks`` predict + rate updates, two 3-D updates per fix."""
+    rng = np.random.default_rng(seed)
+    f = np.eye(n_state) + 0.01 * rng.normal(size=(n_state, n_state))
+    q = np.eye(n_state) * 1e-6
+    h_rate = rng.normal(size=(n_rate, n_state))
+    h_gps = rng.normal(size=(3, n_state))
+    r_rate = np.eye(n_rate)
+    r_gps = np.eye(3)
+    x = np.zeros(n_state)
+    p = np.eye(n_state)
+    every = max(1, n_blocks // max(n_fixes, 1))
+    t0 = time.perf_counter()
+    for b in range(n_blocks):
+        x, p = kf_predict(x, p, f, q)
+        x, p = kf_update(x, p, np.zeros(n_rate), r_rate, h_rate)
+        if b % every == 0:
+            x, p = kf_update(x, p, np.zeros(3), r_gps, h_gps)
+            x, p = kf_update(x, p, np.zeros(3), r_gps, h_gps)
+        p = 0.5 * (p + p.T)
+    return time.perf_counter() - t0
+
+
+def run_filter_bench(scn: FlightScenario, seconds: float = 120.0, repeats: int = 5) -> FilterBench:
+    """Time the pipeline and the bare loop ``repeats`` times each, on one core."""
+    if seconds <= 0 or repeats < 1:
+        raise ValueError("seconds must be positive and repeats at least 1")
+    _pin_one_core()
+    sim = simulate_flight(scn, 0)
+    samples, fixes = _first_seconds(sim.samples, sim.fixes, seconds)
+    times, bare = [], []
+    res = None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        res = run_filter(samples, fixes, sim.config)
+        times.append(time.perf_counter() - t0)
+    n_state = res.state_size
+    n_blocks = res.counts["blocks"]
+    n_fixes = res.counts["gps fixes used"]
+    for _ in range(repeats):
+        bare.append(bare_loop(n_state, n_blocks, res.rate_dim, n_fixes))
+    return FilterBench(
+        scn.name,
+        samples.t_s.shape[0],
+        n_blocks,
+        n_fixes,
+        n_state,
+        scn.run.rate_hz,
+        scn.filter.rate_hz,
+        scn.gps.rate_hz,
+        tuple(times),
+        tuple(bare),
+    )
