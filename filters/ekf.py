@@ -58,9 +58,7 @@ def _quadratic_form(y: np.ndarray, s: np.ndarray) -> float:
     id_, ie, if_ = a * f - c * c, b * c - a * e, a * d - b * b
     det = a * ia + b * ib + c * ic
     x, yy, z = y.tolist()
-    num = (
-        ia * x * x + id_ * yy * yy + if_ * z * z + 2.0 * (ib * x * yy + ic * x * z + ie * yy * z)
-    )
+    num = ia * x * x + id_ * yy * yy + if_ * z * z + 2.0 * (ib * x * yy + ic * x * z + ie * yy * z)
     return num / det if det > 0.0 else float("inf")
 
 

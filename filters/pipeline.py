@@ -493,9 +493,7 @@ def run_filter(
         np.array(inn_pa, dtype=bool),
         np.array(inn_va, dtype=bool),
     )
-    return RunResult(
-        estimates, innovations, np.array(rate_nis), counts, method, nq, nf.layout.n
-    )
+    return RunResult(estimates, innovations, np.array(rate_nis), counts, method, nq, nf.layout.n)
 
 
 def geodetic_estimates(est: Estimates, cfg: RunConfig) -> tuple[np.ndarray, ...]:

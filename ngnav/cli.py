@@ -237,9 +237,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     write_gps_csv(out / "gps.csv", sim.fixes)
     write_run_config(sim.config, out / "config.toml")
     write_truth_csv(out / "truth.csv", sim.truth)
-    print(f"simulated {scn.name} run {args.run_index}: {sim.samples.t_s.shape[0]} array samples "
-          f"({sim.samples.n_channels} channels), {len(sim.fixes)} GPS fixes, "
-          f"{int(sim.saturated.any(axis=1).sum())} saturated samples -> {out}/")
+    print(
+        f"simulated {scn.name} run {args.run_index}: {sim.samples.t_s.shape[0]} array samples "
+        f"({sim.samples.n_channels} channels), {len(sim.fixes)} GPS fixes, "
+        f"{int(sim.saturated.any(axis=1).sum())} saturated samples -> {out}/"
+    )
     return 0
 
 
@@ -256,8 +258,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     cfg = read_run_config(d / "config.toml")
     samples, arep = read_array_csv(d / "array.csv", cfg.layout.n_sensors)
     fixes, grep_ = read_gps_csv(d / "gps.csv")
-    res = run_filter(samples, fixes, cfg, compensation=args.compensation,
-                     use_gps=not args.no_gps)
+    res = run_filter(samples, fixes, cfg, compensation=args.compensation, use_gps=not args.no_gps)
     out = Path(args.out) if args.out else d / "estimates.csv"
     write_estimates_csv(out, res.estimates, cfg)
     print(f"run {d}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
@@ -267,9 +268,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     _print_counts(res.counts)
     if (d / "truth.csv").exists():
         s = summarise(run_errors(res.estimates, read_truth_csv(d / "truth.csv")))
-        print(f"  against truth.csv: horizontal RMS {s.horiz_rms_m:.3f} m, vertical "
-              f"{s.vert_rms_m:.3f} m, roll/pitch/yaw RMS {s.roll_rms_deg:.3f}/"
-              f"{s.pitch_rms_deg:.3f}/{s.yaw_rms_deg:.3f} deg")
+        print(
+            f"  against truth.csv: horizontal RMS {s.horiz_rms_m:.3f} m, vertical "
+            f"{s.vert_rms_m:.3f} m, roll/pitch/yaw RMS {s.roll_rms_deg:.3f}/"
+            f"{s.pitch_rms_deg:.3f}/{s.yaw_rms_deg:.3f} deg"
+        )
     return 0
 
 
@@ -283,18 +286,28 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({**out, "rows": [summary_dict(r) for r in out["rows"]]}, indent=2))
         return 0
-    print(f"{out['scenario']} run {args.run_index}, sensor {out['sensor']}, "
-          f"GPS {out['gps_rate_hz']:g} Hz; raw GPS horizontal RMS {out['raw_gps_horiz_rms_m']:.3f} m")
-    cols = [("horiz_rms_m", "horiz_max_m", "horiz m"), ("vert_rms_m", "vert_max_m", "vert m"),
-            ("vel_rms_mps", "vel_max_mps", "vel m/s"), ("roll_rms_deg", "roll_max_deg", "roll deg"),
-            ("pitch_rms_deg", "pitch_max_deg", "pitch deg"), ("yaw_rms_deg", "yaw_max_deg", "yaw deg"),
-            ("rate_rms_dps", "rate_max_dps", "rate deg/s")]
+    print(
+        f"{out['scenario']} run {args.run_index}, sensor {out['sensor']}, "
+        f"GPS {out['gps_rate_hz']:g} Hz; raw GPS horizontal RMS {out['raw_gps_horiz_rms_m']:.3f} m"
+    )
+    cols = [
+        ("horiz_rms_m", "horiz_max_m", "horiz m"),
+        ("vert_rms_m", "vert_max_m", "vert m"),
+        ("vel_rms_mps", "vel_max_mps", "vel m/s"),
+        ("roll_rms_deg", "roll_max_deg", "roll deg"),
+        ("pitch_rms_deg", "pitch_max_deg", "pitch deg"),
+        ("yaw_rms_deg", "yaw_max_deg", "yaw deg"),
+        ("rate_rms_dps", "rate_max_dps", "rate deg/s"),
+    ]
     print(f"  {'RMS / worst':14s}" + "".join(f"{c[2]:>20s}" for c in cols))
     for r in out["rows"]:
         d = asdict(r.summary)
         print(f"  {r.name:14s}" + "".join(f"{d[a]:>9.3f} / {d[b]:<8.3f}" for a, b, _ in cols))
         if r.bound:
-            print(f"  {'  bound (RMS)':14s}" + "".join(f"{r.bound[a]:>9.3f}{'':11s}" for a, _, _ in cols))
+            print(
+                f"  {'  bound (RMS)':14s}"
+                + "".join(f"{r.bound[a]:>9.3f}{'':11s}" for a, _, _ in cols)
+            )
     for k, v in out.get("events", {}).items():
         print(f"  {k}: {v}")
     return 0
@@ -308,21 +321,34 @@ def cmd_consistency(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(out, indent=2))
         return 0
-    print(f"{out['scenario']}: {out['runs']} Monte Carlo runs, compensation {out['method']}, "
-          "two-sided 95 % chi-square bounds on the run-averaged statistic")
+    print(
+        f"{out['scenario']}: {out['runs']} Monte Carlo runs, compensation {out['method']}, "
+        "two-sided 95 % chi-square bounds on the run-averaged statistic"
+    )
     for name, b in out["blocks"].items():
-        print(f"  {name:14s} dim {b['dim']:2d}  bounds [{b['lower']:.2f}, {b['upper']:.2f}]  "
-              f"mean {b['mean']:7.2f}  inside {100 * b['share_inside']:5.1f} % of epochs")
+        print(
+            f"  {name:14s} dim {b['dim']:2d}  bounds [{b['lower']:.2f}, {b['upper']:.2f}]  "
+            f"mean {b['mean']:7.2f}  inside {100 * b['share_inside']:5.1f} % of epochs"
+        )
     print(f"  median attitude RMS over runs: {out['att_rms_deg_median']:.3f} deg")
     return 0
 
 
 def _add_flight_args(p: argparse.ArgumentParser, default: str = "uav-survey") -> None:
-    p.add_argument("--scenario", default=default,
-                   help="shipped flight scenario (static, uav-survey, tactical) or TOML path "
-                        "(default: %(default)s)")
-    p.add_argument("--set", dest="overrides", action="append", default=[],
-                   metavar="SECTION.KEY=VALUE", help="override a scenario value (repeatable)")
+    p.add_argument(
+        "--scenario",
+        default=default,
+        help="shipped flight scenario (static, uav-survey, tactical) or TOML path "
+        "(default: %(default)s)",
+    )
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override a scenario value (repeatable)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -351,27 +377,39 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="simulate a flight run as CSV + TOML files, with truth")
     _add_flight_args(p)
-    p.add_argument("--run-index", type=int, default=0, help="Monte Carlo index i of default_rng([seed, i])")
+    p.add_argument(
+        "--run-index", type=int, default=0, help="Monte Carlo index i of default_rng([seed, i])"
+    )
     p.add_argument("--out", required=True, help="output directory")
     p.set_defaults(func=cmd_simulate)
 
-    p = sub.add_parser("run", help="run the filter on a run directory (config.toml, array.csv, gps.csv)")
+    p = sub.add_parser(
+        "run", help="run the filter on a run directory (config.toml, array.csv, gps.csv)"
+    )
     p.add_argument("run_dir", help="directory with config.toml, array.csv, gps.csv")
     p.add_argument("--out", help="estimates file (default: RUN_DIR/estimates.csv)")
-    p.add_argument("--compensation", choices=["gm11", "none", "line", "last"], help="override the config")
+    p.add_argument(
+        "--compensation", choices=["gm11", "none", "line", "last"], help="override the config"
+    )
     p.add_argument("--no-gps", action="store_true", help="array alone after initialisation")
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("evaluate", help="errors of GM(1,1)/none/oracle/array-alone/GPS-alone on a simulated flight")
+    p = sub.add_parser(
+        "evaluate", help="errors of GM(1,1)/none/oracle/array-alone/GPS-alone on a simulated flight"
+    )
     _add_flight_args(p)
     p.add_argument("--run-index", type=int, default=0)
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_evaluate)
 
-    p = sub.add_parser("consistency", help="NEES/NIS over Monte Carlo runs against chi-square bounds")
+    p = sub.add_parser(
+        "consistency", help="NEES/NIS over Monte Carlo runs against chi-square bounds"
+    )
     _add_flight_args(p)
     p.add_argument("--runs", type=int, default=50)
-    p.add_argument("--workers", type=int, default=2, help="dask worker processes (default: %(default)s)")
+    p.add_argument(
+        "--workers", type=int, default=2, help="dask worker processes (default: %(default)s)"
+    )
     p.add_argument("--method", choices=["gm11", "none", "line", "last", "oracle"])
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_consistency)
@@ -385,7 +423,9 @@ def build_parser() -> argparse.ArgumentParser:
         "bench-filter", help="speed of the whole GPS/array pipeline beside a bare filterpy loop"
     )
     _add_flight_args(p)
-    p.add_argument("--seconds", type=float, default=120.0, help="flight seconds timed (default: %(default)s)")
+    p.add_argument(
+        "--seconds", type=float, default=120.0, help="flight seconds timed (default: %(default)s)"
+    )
     p.add_argument("--repeats", type=int, default=5)
     p.set_defaults(func=cmd_bench_filter)
     return parser
