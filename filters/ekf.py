@@ -102,6 +102,8 @@ class Counters:
     rate_updates: int = 0
     rate_rejected: int = 0
     held_samples: int = 0
+    sideslip_used: int = 0
+    sideslip_rejected: int = 0
 
 
 @dataclass
@@ -165,6 +167,7 @@ class NavFilter:
         if not 0.5 < self.gate_probability < 1.0:
             raise ValueError(f"gate_probability must be in (0.5, 1), got {self.gate_probability}")
         self.gate3 = float(chi2.ppf(self.gate_probability, 3))
+        self.gate1 = float(chi2.ppf(self.gate_probability, 1))
         self.gate_q = float(chi2.ppf(self.gate_probability, max(self.layout.nq, 1)))
         self.x = np.zeros(n)
         self.P = np.eye(n)
@@ -528,10 +531,36 @@ class NavFilter:
         self._consec_rejects = 0 if ok_p else self._consec_rejects + 1
         return GpsUpdateResult(nis_p, nis_v, ok_p, ok_v)
 
-    def _gated_update(self, y: np.ndarray, r: np.ndarray, h: np.ndarray) -> tuple[float, bool]:
+    def sideslip_model(self, q_nb: np.ndarray, vel_ned_mps: np.ndarray) -> tuple[float, np.ndarray]:
+        """Body-lateral velocity ``e_y . C^T v`` (m/s) and its Jacobian (1, n)."""
+        c = dcm_from_quat(q_nb)
+        row = c[:, 1]  # e_y^T C^T as a NED row
+        h = np.zeros((1, self.layout.n))
+        h[0, VEL] = row
+        h[0, ATT] = row @ skew(vel_ned_mps)
+        return float(row @ vel_ned_mps), h
+
+    def update_sideslip(self, sigma_rad: float, min_speed_mps: float) -> float | None:
+        """Zero-sideslip pseudo-measurement (see ``FilterSettings.sideslip_sigma_deg``).
+
+        Returns the NIS, or None below ``min_speed_mps`` (no update).
+        """
+        speed = float(np.hypot(self.vel[0], self.vel[1]))
+        if speed < min_speed_mps:
+            return None
+        v_lat, h = self.sideslip_model(self.q, self.vel)
+        r = np.array([[(speed * np.tan(sigma_rad)) ** 2]])
+        nis, ok = self._gated_update(np.array([-v_lat]), r, h, self.gate1)
+        self.counters.sideslip_used += int(ok)
+        self.counters.sideslip_rejected += int(not ok)
+        return nis
+
+    def _gated_update(
+        self, y: np.ndarray, r: np.ndarray, h: np.ndarray, gate: float | None = None
+    ) -> tuple[float, bool]:
         s = h @ self.P @ h.T + r
         nis = _quadratic_form(y, s)
-        if not np.isfinite(nis) or nis > self.gate3:
+        if not np.isfinite(nis) or nis > (self.gate3 if gate is None else gate):
             return nis, False
         self.x, self.P = kf_update(self.x, self.P, y, r, h)
         self._inject()

@@ -43,6 +43,8 @@ from ngnav.runconfig import RunConfig
 
 #: Consecutive rejected GPS positions after which the filter is put back on the fix.
 RESET_AFTER_REJECTS = 25
+#: Time constant of the angular acceleration the position states' Jacobian uses, s.
+WDOT_SMOOTHING_S = 0.05
 #: Horizontal speed above which a GPS course can set the heading, m/s.
 COURSE_MIN_SPEED_MPS = 5.0
 
@@ -376,6 +378,9 @@ def run_filter(
     rate_nis = []
     n_fallbacks = 0
     with_dr = nf.layout.n_dr > 0
+    slip_sigma = np.deg2rad(cfg.filter.sideslip_sigma_deg)
+    wd_smooth = np.zeros(3)
+    smooth_gain = min(1.0, 1.0 / (WDOT_SMOOTHING_S * cfg.filter.rate_hz))
     phi_hat = np.zeros(12) if predictor is not None else None
     full_check_every = max(1, round(cfg.filter.rate_hz))  # the Cholesky check once a second
     i0 = i_start
@@ -396,9 +401,12 @@ def run_filter(
         n_ok = kk - int(np.count_nonzero(bad))
         sg = sg_true = None
         if with_dr:
-            # the sensor-position states see the block's mean motion
-            wd_m = xs[:, 0:3].sum(axis=0) * (1.0 / kk) - nf.bias[0:3]
-            sg = nf.geometry_jacobian(wd_m, nf.w + 0.5 * kk * dt * wd_m)
+            # The sensor-position states see the block's angular acceleration as
+            # forecast from the *previous* blocks (the compensation's forecast, or a
+            # smoothed history without one): this block's own noise would correlate
+            # the Jacobian with the rate measurement's noise and drag dr.
+            wd_sg = wd_smooth if phi_hat is None else phi_hat[0:3] - nf.bias[0:3]
+            sg = nf.geometry_jacobian(wd_sg, nf.w + 0.5 * kk * dt * wd_sg)
             if p_bound is not None:
                 blk = slice(i0 + 1, i1 + 1)
                 sg_true = nf.geometry_jacobian(
@@ -428,6 +436,7 @@ def run_filter(
         good = xs[~bad] if 0 < n_ok < kk else xs
         last_mean = good.sum(axis=0) * (1.0 / good.shape[0])
         hist[e - 1 + window] = np.concatenate([nf.w, last_mean[0:3], last_mean[3:6]])
+        wd_smooth += smooth_gain * (last_mean[0:3] - nf.bias[0:3] - wd_smooth)
         for m in fixes_at.get(int(i1), []):
             if not use_gps:
                 continue
@@ -457,6 +466,15 @@ def run_filter(
                         np.eye(3) * fixes.vel_acc_mps[m] ** 2,
                         hv,
                     )
+            if slip_sigma > 0:
+                nis_s = nf.update_sideslip(slip_sigma, COURSE_MIN_SPEED_MPS)
+                if p_bound is not None and nis_s is not None and nis_s <= nf.gate1:
+                    v_true = truth.vel_ned_mps[i1]
+                    _, hs = nf.sideslip_model(truth.q_nb[i1], v_true)
+                    r_s = (np.hypot(v_true[0], v_true[1]) * np.tan(slip_sigma)) ** 2
+                    _, p_bound = kf_update(
+                        np.zeros(nf.layout.n), p_bound, np.zeros(1), np.array([[r_s]]), hs
+                    )
             if nf.consecutive_position_rejects >= RESET_AFTER_REJECTS:
                 nf.reset_to_fix(fix_ned[m], fixes.vel_ned_mps[m], fix_sig[m], fixes.vel_acc_mps[m])
             if heading_pending:
@@ -482,6 +500,8 @@ def run_filter(
             "gps resets after rejections": nf.counters.gps_resets,
             "rate updates": nf.counters.rate_updates,
             "rate updates rejected (gate)": nf.counters.rate_rejected,
+            "sideslip updates": nf.counters.sideslip_used,
+            "sideslip updates rejected (gate)": nf.counters.sideslip_rejected,
             "grey forecasts fallen back": n_fallbacks,
         }
     )

@@ -63,18 +63,30 @@ COMPENSATIONS: tuple[str, ...] = ("gm11", "none", "line", "last", "oracle")
 
 @dataclass(frozen=True)
 class FilterSettings:
-    """Filter rate (Hz), compensation method, GM window, gate and rate range (deg/s)."""
+    """Filter rate (Hz), compensation method, GM window, gate and rate range (deg/s).
+
+    ``sideslip_sigma_deg`` > 0 adds the fixed-wing vehicle model: at every GPS
+    fix above 5 m/s ground speed, the body-lateral velocity is measured as
+    zero with a 1-sigma of ``speed * tan(sideslip_sigma_deg)``. It assumes the
+    ground velocity lies in the body's x-z plane (calm air, or a crab angle
+    within that sigma); 0 (the default) leaves it out.
+    """
 
     rate_hz: float = 100.0
     compensation: str = "gm11"
     window: int = 5
     gate_probability: float = 0.9999
     rate_range_dps: float = 200.0
+    sideslip_sigma_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if self.compensation not in COMPENSATIONS:
             raise ValueError(
                 f"filter.compensation must be one of {COMPENSATIONS}, got {self.compensation!r}"
+            )
+        if not 0.0 <= self.sideslip_sigma_deg < 45.0:
+            raise ValueError(
+                f"filter.sideslip_sigma_deg must be in [0, 45), got {self.sideslip_sigma_deg}"
             )
 
 
