@@ -45,6 +45,8 @@ from ngnav.runconfig import RunConfig
 RESET_AFTER_REJECTS = 25
 #: Time constant of the angular acceleration the position states' Jacobian uses, s.
 WDOT_SMOOTHING_S = 0.05
+#: Rate of the zero-sideslip pseudo-measurement (when configured), Hz.
+SIDESLIP_RATE_HZ = 5.0
 #: Horizontal speed above which a GPS course can set the heading, m/s.
 COURSE_MIN_SPEED_MPS = 5.0
 
@@ -379,6 +381,7 @@ def run_filter(
     n_fallbacks = 0
     with_dr = nf.layout.n_dr > 0
     slip_sigma = np.deg2rad(cfg.filter.sideslip_sigma_deg)
+    t_last_slip = -np.inf
     wd_smooth = np.zeros(3)
     smooth_gain = min(1.0, 1.0 / (WDOT_SMOOTHING_S * cfg.filter.rate_hz))
     phi_hat = np.zeros(12) if predictor is not None else None
@@ -466,15 +469,6 @@ def run_filter(
                         np.eye(3) * fixes.vel_acc_mps[m] ** 2,
                         hv,
                     )
-            if slip_sigma > 0:
-                nis_s = nf.update_sideslip(slip_sigma, COURSE_MIN_SPEED_MPS)
-                if p_bound is not None and nis_s is not None and nis_s <= nf.gate1:
-                    v_true = truth.vel_ned_mps[i1]
-                    _, hs = nf.sideslip_model(truth.q_nb[i1], v_true)
-                    r_s = (np.hypot(v_true[0], v_true[1]) * np.tan(slip_sigma)) ** 2
-                    _, p_bound = kf_update(
-                        np.zeros(nf.layout.n), p_bound, np.zeros(1), np.array([[r_s]]), hs
-                    )
             if nf.consecutive_position_rejects >= RESET_AFTER_REJECTS:
                 nf.reset_to_fix(fix_ned[m], fixes.vel_ned_mps[m], fix_sig[m], fixes.vel_acc_mps[m])
             if heading_pending:
@@ -484,6 +478,17 @@ def run_filter(
                     course_sigma = float(np.arctan2(3 * fixes.vel_acc_mps[m], speed))
                     nf.set_heading(float(np.arctan2(vh[1], vh[0])), course_sigma)
                     heading_pending = False
+        if slip_sigma > 0 and use_gps and nf.t_s - t_last_slip >= 1.0 / SIDESLIP_RATE_HZ - dt / 2:
+            # the vehicle model holds with or without fixes (outages included)
+            t_last_slip = nf.t_s
+            nis_s = nf.update_sideslip(slip_sigma, COURSE_MIN_SPEED_MPS)
+            if p_bound is not None and nis_s is not None and nis_s <= nf.gate1:
+                v_true = truth.vel_ned_mps[i1]
+                _, hs = nf.sideslip_model(truth.q_nb[i1], v_true)
+                r_s = (np.hypot(v_true[0], v_true[1]) * np.tan(slip_sigma)) ** 2
+                _, p_bound = kf_update(
+                    np.zeros(nf.layout.n), p_bound, np.zeros(1), np.array([[r_s]]), hs
+                )
         nf.check_covariance("block", full=int(i1) in fixes_at or e % full_check_every == 0)
         record(e)
         i0 = i1

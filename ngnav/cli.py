@@ -301,6 +301,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     ]
     print(f"  {'RMS / worst':14s}" + "".join(f"{c[2]:>20s}" for c in cols))
     for r in out["rows"]:
+        if r.failure:
+            print(f"  {r.name:14s}  {r.failure}")
+            continue
         d = asdict(r.summary)
         print(f"  {r.name:14s}" + "".join(f"{d[a]:>9.3f} / {d[b]:<8.3f}" for a, b, _ in cols))
         if r.bound:
@@ -309,6 +312,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                 + "".join(f"{r.bound[a]:>9.3f}{'':11s}" for a, _, _ in cols)
             )
     for k, v in out.get("events", {}).items():
+        print(f"  {k}: {v}")
+    for k, v in out.get("targets", {}).items():
         print(f"  {k}: {v}")
     return 0
 

@@ -65,9 +65,10 @@ COMPENSATIONS: tuple[str, ...] = ("gm11", "none", "line", "last", "oracle")
 class FilterSettings:
     """Filter rate (Hz), compensation method, GM window, gate and rate range (deg/s).
 
-    ``sideslip_sigma_deg`` > 0 adds the fixed-wing vehicle model: at every GPS
-    fix above 5 m/s ground speed, the body-lateral velocity is measured as
-    zero with a 1-sigma of ``speed * tan(sideslip_sigma_deg)``. It assumes the
+    ``sideslip_sigma_deg`` > 0 adds the fixed-wing vehicle model: at 5 Hz
+    (through GPS outages too) and above 5 m/s ground speed, the body-lateral
+    velocity is measured as zero with a 1-sigma of
+    ``speed * tan(sideslip_sigma_deg)``. It assumes the
     ground velocity lies in the body's x-z plane (calm air, or a crab angle
     within that sigma); 0 (the default) leaves it out.
     """
