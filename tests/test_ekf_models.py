@@ -42,13 +42,14 @@ vec3 = st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3).map(np.array)
 @settings(max_examples=30, deadline=None)
 @given(vec3, vec3, vec3, st.integers(0, 2**31 - 1))
 def test_geometry_jacobian_is_exact(wdot, w, f, seed):
-    """S G dr equals the solved change of moving the sensors by dr (the outputs are linear in dr)."""
+    """S G dr is the solved change from moving the sensors by dr (outputs are linear in dr)."""
     nf, layout, solver = _filter(0.0005)
     dr = np.random.default_rng(seed).normal(0.0, 0.001, (9, 3))
     moved = ArrayLayout(layout.positions_b_m + dr, layout.axes_b, lever_arm_m=0.1)
-    da = moved.outputs(wdot[None], f[None], w[None])[0] - layout.outputs(
-        wdot[None], f[None], w[None]
-    )[0]
+    da = (
+        moved.outputs(wdot[None], f[None], w[None])[0]
+        - layout.outputs(wdot[None], f[None], w[None])[0]
+    )
     sg = nf.geometry_jacobian(wdot, w)
     np.testing.assert_allclose(sg @ dr.ravel(), solver.solve_matrix @ da, atol=1e-12)
 
