@@ -447,6 +447,24 @@ class NavFilter:
         self.counters.rate_updates += 1
         return nis
 
+    def update_static_biases(self, mean_features: np.ndarray, n_samples: int) -> None:
+        """Static alignment: at rest ``wdot = 0`` and ``w = 0``, so the mean solved
+        angular acceleration and rate products over ``n_samples`` samples measure
+        their biases directly (noise ``feature_cov / n``). Through the channel-bias
+        correlation this also informs the force bias. Without it a gyro-free
+        array leaves the static alignment with its yaw-acceleration bias at the
+        turn-on prior, and a single-axis yaw rate is invisible to the products.
+        """
+        nq = self.layout.nq
+        idx = np.r_[0:3, 6 : 6 + nq]
+        h = np.zeros((idx.size, self.layout.n))
+        h[0:3, B_WDOT] = np.eye(3)
+        h[3:, b_quad(nq)] = np.eye(nq)
+        r = self.noise.feature_cov[np.ix_(idx, idx)] / max(int(n_samples), 1)
+        y = mean_features[idx] - self.bias[idx]
+        self.x, self.P = kf_update(self.x, self.P, y, r, h)
+        self._inject()
+
     def rate_model(
         self,
         w_block: np.ndarray,

@@ -196,14 +196,17 @@ def _events(sim: SimulatedRun, scn: FlightScenario, res: RunResult, errs: RunErr
 # --------------------------------------------------------------------- Monte Carlo
 def _one_run(scn: FlightScenario, i: int, method: str) -> dict:
     sim = simulate_flight(scn, i)
-    res = run_filter(
-        sim.samples,
-        sim.fixes,
-        sim.config,
-        compensation=method,
-        true_layout=sim.true_layout(),
-        truth=sim.truth,
-    )
+    try:
+        res = run_filter(
+            sim.samples,
+            sim.fixes,
+            sim.config,
+            compensation=method,
+            true_layout=sim.true_layout(),
+            truth=sim.truth,
+        )
+    except CovarianceError as exc:
+        return {"run": i, "diverged": str(exc)}
     errs = run_errors(res.estimates, sim.truth)
     ne = {k: v.astype(np.float32) for k, v in nees(errs, res.estimates.cov_nav).items()}
     inn = res.innovations
@@ -211,6 +214,7 @@ def _one_run(scn: FlightScenario, i: int, method: str) -> dict:
     for tg in sim.fixes.t_s[sim.glitched]:
         keep &= np.abs(inn.t_s - tg) > 1e-9
     return {
+        "run": i,
         "nees": ne,
         "t_s": res.estimates.t_s,
         "nis_pos": np.where(keep, inn.nis_pos, np.nan),
@@ -245,7 +249,9 @@ def consistency(
 
     Runs execute in parallel with dask's process scheduler (``workers``
     processes; 1 runs them in this process). Glitched fixes are left out of
-    the NIS (they are meant to fail it).
+    the NIS (they are meant to fail it). A run whose covariance check fails
+    is listed under ``diverged`` and left out of the averages (``runs`` counts
+    the runs averaged): a divergence is a result to report, not a crash.
     """
     import dask
     from tqdm import tqdm
@@ -266,10 +272,21 @@ def consistency(
             results += dask.compute(*tasks, scheduler="synchronous")
         bar.update(len(tasks))
     bar.close()
+    diverged = [{"run": r["run"], "reason": r["diverged"]} for r in results if "diverged" in r]
+    results = [r for r in results if "diverged" not in r]
+    if not results:
+        raise RuntimeError(f"every Monte Carlo run diverged: {diverged}")
+    runs = len(results)
     lengths = {r["t_s"].shape[0] for r in results}
     if len(lengths) != 1:
         raise RuntimeError("Monte Carlo runs produced different epochs; cannot average")
-    out: dict = {"scenario": scn.name, "runs": runs, "method": method, "blocks": {}}
+    out: dict = {
+        "scenario": scn.name,
+        "runs": runs,
+        "method": method,
+        "diverged": diverged,
+        "blocks": {},
+    }
     dims = {"pos": 3, "vel": 3, "att": 3, "rate": 3, "all": 12}
     for name, d in dims.items():
         out["blocks"][f"NEES {name}"] = _block([r["nees"][name] for r in results], d, runs)

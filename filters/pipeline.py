@@ -281,6 +281,8 @@ def run_filter(
         else:
             f_b = f_mean[3:6]
         roll0, pitch0 = _static_tilt(f_b)
+        # at rest the angular-acceleration and rate-product means are their biases
+        static_mean = f_mean - (se @ phi if se is not None else 0.0)
         n_avg = int(np.count_nonzero(ok))
         tilt_noise = np.sqrt(noise.feature_cov[3, 3] / n_avg) / G0_MPS2
         att_sigma = np.array([tilt_noise, tilt_noise, np.deg2rad(ini.heading_sigma_deg)])
@@ -318,6 +320,7 @@ def run_filter(
         p[6:8, 8] = 0.0
         p[8, 6:8] = 0.0
         nf.P = p
+        nf.update_static_biases(static_mean, n_avg)
         nf.check_covariance("static alignment")
 
     # --- bound: the same covariance recursion, linearised at the truth
@@ -369,7 +372,8 @@ def run_filter(
     seed_ok = ~invalid[max(0, i_start - k_reg) : i_start + 1]
     seed_mean = seed_block[seed_ok].mean(axis=0) if np.any(seed_ok) else np.zeros(k_feat)
     hist = np.empty((n_e + window, 9))
-    hist[:window] = np.concatenate([nf.w, seed_mean[0:3], seed_mean[3:6]])
+    # the forecast history holds motion: block means less the current bias estimates
+    hist[:window] = np.concatenate([nf.w, seed_mean[0:6] - nf.bias[0:6]])
     last_mean = seed_mean.copy()
     first_row = sa[i_start] if not invalid[i_start] else seed_mean
     if se is not None:
@@ -399,7 +403,7 @@ def run_filter(
             phi_hat[6:] = (wx * wx, wy * wy, wz * wz, wy * wz, wx * wz, wx * wy)
             xs -= se @ phi_hat
         if np.any(bad):
-            fill = last_mean if phi_hat is None else phi_hat[cols]
+            fill = last_mean if phi_hat is None else phi_hat[cols] + nf.bias
             xs[bad] = fill
         n_ok = kk - int(np.count_nonzero(bad))
         sg = sg_true = None
@@ -408,7 +412,7 @@ def run_filter(
             # forecast from the *previous* blocks (the compensation's forecast, or a
             # smoothed history without one): this block's own noise would correlate
             # the Jacobian with the rate measurement's noise and drag dr.
-            wd_sg = wd_smooth if phi_hat is None else phi_hat[0:3] - nf.bias[0:3]
+            wd_sg = wd_smooth if phi_hat is None else phi_hat[0:3]
             sg = nf.geometry_jacobian(wd_sg, nf.w + 0.5 * kk * dt * wd_sg)
             if p_bound is not None:
                 blk = slice(i0 + 1, i1 + 1)
@@ -438,7 +442,7 @@ def run_filter(
                 )
         good = xs[~bad] if 0 < n_ok < kk else xs
         last_mean = good.sum(axis=0) * (1.0 / good.shape[0])
-        hist[e - 1 + window] = np.concatenate([nf.w, last_mean[0:3], last_mean[3:6]])
+        hist[e - 1 + window] = np.concatenate([nf.w, last_mean[0:6] - nf.bias[0:6]])
         wd_smooth += smooth_gain * (last_mean[0:3] - nf.bias[0:3] - wd_smooth)
         for m in fixes_at.get(int(i1), []):
             if not use_gps:

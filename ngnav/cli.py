@@ -336,6 +336,8 @@ def cmd_consistency(args: argparse.Namespace) -> int:
             f"mean {b['mean']:7.2f}  inside {100 * b['share_inside']:5.1f} % of epochs"
         )
     print(f"  median attitude RMS over runs: {out['att_rms_deg_median']:.3f} deg")
+    for d in out["diverged"]:
+        print(f"  run {d['run']} diverged and is left out: {d['reason']}")
     return 0
 
 
