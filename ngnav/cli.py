@@ -18,13 +18,17 @@ def _add_scenario_args(p: argparse.ArgumentParser) -> None:
         default="tilt-table",
         help="shipped scenario name or TOML path (default: %(default)s)",
     )
+    _add_set_arg(p, "e.g. --set sensor.noise_mv=0.5 ")
+
+
+def _add_set_arg(p: argparse.ArgumentParser, example: str = "") -> None:
     p.add_argument(
         "--set",
         dest="overrides",
         action="append",
         default=[],
         metavar="SECTION.KEY=VALUE",
-        help="override a scenario value, e.g. --set sensor.noise_mv=0.5 (repeatable)",
+        help=f"override a scenario value, {example}(repeatable)",
     )
 
 
@@ -348,14 +352,7 @@ def _add_flight_args(p: argparse.ArgumentParser, default: str = "uav-survey") ->
         help="shipped flight scenario (static, uav-survey, tactical) or TOML path "
         "(default: %(default)s)",
     )
-    p.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="SECTION.KEY=VALUE",
-        help="override a scenario value (repeatable)",
-    )
+    _add_set_arg(p)
 
 
 def build_parser() -> argparse.ArgumentParser:

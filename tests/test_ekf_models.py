@@ -10,6 +10,7 @@ from filters.state import ATT, RATE, VEL
 from ngnav.frontend import ArraySolver
 from ngnav.layout import ArrayLayout, nine_accelerometer_cube
 from ngnav.rotation import dcm_from_quat, quat_from_rotvec, quat_multiply, quat_normalize
+from tests.helpers import initialise_level
 
 PAIRS = np.array([[1, 2], [0, 2], [0, 1]])
 
@@ -22,17 +23,7 @@ def _filter(position_sigma_m: float = 0.0) -> tuple[NavFilter, ArrayLayout, Arra
     nf = NavFilter(
         noise, PAIRS, np.zeros(3), sensor_axes_b=layout.axes_b, solve_matrix=solver.solve_matrix
     )
-    nf.initialise(
-        0.0,
-        np.zeros(3),
-        np.zeros(3),
-        np.array([1.0, 0, 0, 0]),
-        np.zeros(3),
-        1.0,
-        0.1,
-        np.full(3, 0.01),
-        0.01,
-    )
+    initialise_level(nf)
     return nf, layout, solver
 
 

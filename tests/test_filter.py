@@ -17,6 +17,7 @@ from ngnav.records import ArraySamples
 from ngnav.runconfig import read_run_config, write_run_config
 from ngnav.runio import read_array_csv, read_gps_csv, write_array_csv, write_gps_csv
 from ngnav.simulate import simulate_flight
+from tests.helpers import initialise_level
 
 ROOT = Path(__file__).resolve().parents[1]
 SHORT = ["run.rate_hz=200"]
@@ -118,17 +119,7 @@ def test_bad_samples_and_a_glitch_do_not_stop_or_corrupt_the_run(tactical):
 def test_covariance_check_fails_loudly():
     eye = np.eye(9) * 1e-6
     nf = NavFilter(FilterNoise(eye, eye, eye), np.array([[1, 2], [0, 2], [0, 1]]), np.zeros(3))
-    nf.initialise(
-        0.0,
-        np.zeros(3),
-        np.zeros(3),
-        np.array([1.0, 0, 0, 0]),
-        np.zeros(3),
-        1.0,
-        0.1,
-        np.full(3, 0.01),
-        0.01,
-    )
+    initialise_level(nf)
     p = nf.P.copy()
     p[0, 0] = -1.0
     nf.P = p
