@@ -25,25 +25,14 @@ from filters.pipeline import Estimates
 from ngnav.geodesy import WGS84_A_M, WGS84_E2, LocalTangentPlane
 from ngnav.rotation import euler_from_quat
 from ngnav.runconfig import RunConfig
+from ngnav.runio import NAV_COLUMNS
 
 ESTIMATE_COLUMNS: tuple[str, ...] = (
     "t_s",
     "lat_deg",
     "lon_deg",
     "alt_m",
-    "n_m",
-    "e_m",
-    "d_m",
-    "vn_mps",
-    "ve_mps",
-    "vd_mps",
-    "qw",
-    "qx",
-    "qy",
-    "qz",
-    "wx_radps",
-    "wy_radps",
-    "wz_radps",
+    *NAV_COLUMNS,
     "lat_deg_sigma",
     "lon_deg_sigma",
     "alt_m_sigma",

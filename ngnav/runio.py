@@ -41,8 +41,9 @@ GPS_COLUMNS: tuple[str, ...] = (
     "v_acc_m",
     "vel_acc_mps",
 )
-TRUTH_COLUMNS: tuple[str, ...] = (
-    "t_s",
+#: Navigation-state columns shared by ``truth.csv`` and ``estimates.csv``:
+#: NED position (m), NED velocity (m/s), ``q_nb`` (Hamilton, scalar first), body rate (rad/s).
+NAV_COLUMNS: tuple[str, ...] = (
     "n_m",
     "e_m",
     "d_m",
@@ -56,6 +57,10 @@ TRUTH_COLUMNS: tuple[str, ...] = (
     "wx_radps",
     "wy_radps",
     "wz_radps",
+)
+TRUTH_COLUMNS: tuple[str, ...] = (
+    "t_s",
+    *NAV_COLUMNS,
     "wdx_radps2",
     "wdy_radps2",
     "wdz_radps2",
