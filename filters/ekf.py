@@ -99,6 +99,7 @@ class Counters:
     gps_rejected_pos: int = 0
     gps_rejected_vel: int = 0
     gps_resets: int = 0
+    gps_gap_resets: int = 0
     rate_updates: int = 0
     rate_rejected: int = 0
     held_samples: int = 0
@@ -228,6 +229,7 @@ class NavFilter:
         self.dr = np.zeros(self.layout.n_dr)
         self.P = p
         self.x = np.zeros(self.layout.n)
+        self.t_last_position_fix = self.t_s
         self.check_covariance("initialisation")
 
     # ------------------------------------------------------------- propagation
@@ -529,15 +531,34 @@ class NavFilter:
         pos_sigma_m: np.ndarray,
         vel_sigma_mps: float,
         dt_fix_s: float = 0.0,
+        reset: bool = False,
     ) -> GpsUpdateResult:
         """Gate and apply one GPS fix (antenna position and velocity, NED).
 
         ``dt_fix_s`` is the fix time minus the filter time (|dt| below one
-        array sample); the prediction is moved by ``v dt``.
+        array sample); the prediction is moved by ``v dt``. With ``reset``
+        (the first fix after an outage) a fix that passes the position gate
+        is not fused: :meth:`reset_to_fix` puts position and velocity on it.
         """
         cr, _, hp, _ = self.gps_model(self.q, self.w)
         rp = np.diag(np.broadcast_to(np.asarray(pos_sigma_m, dtype=float), 3) ** 2)
         yp = pos_ned_m - (self.pos + cr + self.vel * dt_fix_s)
+        if reset:
+            nis_p = _quadratic_form(yp, hp @ self.P @ hp.T + rp)
+            if np.isfinite(nis_p) and nis_p <= self.gate3:
+                _, cwr, _, hv = self.gps_model(self.q, self.w)
+                yv = vel_ned_mps - (self.vel + cwr)
+                nis_v = _quadratic_form(yv, hv @ self.P @ hv.T + np.eye(3) * vel_sigma_mps**2)
+                self._put_on_fix(
+                    pos_ned_m - self.vel * dt_fix_s, vel_ned_mps, pos_sigma_m, vel_sigma_mps
+                )
+                self.counters.gps_gap_resets += 1
+                self.counters.gps_used += 1
+                return GpsUpdateResult(nis_p, nis_v, True, True)
+            self.counters.gps_rejected_pos += 1
+            self.counters.gps_rejected_vel += 1
+            self._consec_rejects += 1
+            return GpsUpdateResult(nis_p, float("nan"), False, False)
         nis_p, ok_p = self._gated_update(yp, rp, hp)
         _, cwr, _, hv = self.gps_model(self.q, self.w)  # after the position update
         rv = np.eye(3) * float(vel_sigma_mps) ** 2
@@ -547,6 +568,8 @@ class NavFilter:
         self.counters.gps_rejected_pos += int(not ok_p)
         self.counters.gps_rejected_vel += int(not ok_v)
         self._consec_rejects = 0 if ok_p else self._consec_rejects + 1
+        if ok_p:
+            self.t_last_position_fix = self.t_s
         return GpsUpdateResult(nis_p, nis_v, ok_p, ok_v)
 
     def sideslip_model(self, q_nb: np.ndarray, vel_ned_mps: np.ndarray) -> tuple[float, np.ndarray]:
@@ -596,10 +619,26 @@ class NavFilter:
         pos_sigma_m: np.ndarray,
         vel_sigma_mps: float,
     ) -> None:
-        """Documented fallback: put position and velocity on a fix after a run of rejections."""
-        cr = dcm_from_quat(self.q) @ self.antenna_b_m
-        self.pos = np.asarray(pos_ned_m, dtype=float) - cr
-        self.vel = np.asarray(vel_ned_mps, dtype=float).copy()
+        """Documented fallback: put position and velocity on a fix (antenna, NED).
+
+        Used after a run of rejected fixes and for the first fix after an
+        outage. The antenna lever arm is removed with the current attitude and
+        rate; position and velocity get the fix's variances and lose their
+        correlations with the other states, which keep theirs.
+        """
+        self._put_on_fix(pos_ned_m, vel_ned_mps, pos_sigma_m, vel_sigma_mps)
+        self.counters.gps_resets += 1
+
+    def _put_on_fix(
+        self,
+        pos_ned_m: np.ndarray,
+        vel_ned_mps: np.ndarray,
+        pos_sigma_m: np.ndarray,
+        vel_sigma_mps: float,
+    ) -> None:
+        c = dcm_from_quat(self.q)
+        self.pos = np.asarray(pos_ned_m, dtype=float) - c @ self.antenna_b_m
+        self.vel = np.asarray(vel_ned_mps, dtype=float) - c @ np.cross(self.w, self.antenna_b_m)
         n = self.layout.n
         keep = np.ones(n, dtype=bool)
         keep[0:6] = False
@@ -610,7 +649,7 @@ class NavFilter:
         p[VEL, VEL] = np.eye(3) * float(vel_sigma_mps) ** 2
         self.P = p
         self._consec_rejects = 0
-        self.counters.gps_resets += 1
+        self.t_last_position_fix = self.t_s
         self.check_covariance("GPS reset")
 
     def set_heading(self, yaw_rad: float, sigma_rad: float) -> None:

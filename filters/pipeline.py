@@ -385,6 +385,7 @@ def run_filter(
     n_fallbacks = 0
     with_dr = nf.layout.n_dr > 0
     slip_sigma = np.deg2rad(cfg.filter.sideslip_sigma_deg)
+    gap_reset_s = cfg.filter.gps_gap_reset_s
     t_last_slip = -np.inf
     wd_smooth = np.zeros(3)
     smooth_gain = min(1.0, 1.0 / (WDOT_SMOOTHING_S * cfg.filter.rate_hz))
@@ -447,12 +448,14 @@ def run_filter(
         for m in fixes_at.get(int(i1), []):
             if not use_gps:
                 continue
+            gap = gap_reset_s > 0 and nf.t_s - nf.t_last_position_fix > gap_reset_s
             res = nf.update_gps(
                 fix_ned[m],
                 fixes.vel_ned_mps[m],
                 fix_sig[m],
                 fixes.vel_acc_mps[m],
                 fixes.t_s[m] - nf.t_s,
+                reset=gap,
             )
             inn_t.append(fixes.t_s[m])
             inn_p.append(res.nis_pos)
@@ -507,6 +510,7 @@ def run_filter(
             "gps positions rejected (gate)": nf.counters.gps_rejected_pos,
             "gps velocities rejected (gate)": nf.counters.gps_rejected_vel,
             "gps resets after rejections": nf.counters.gps_resets,
+            "gps resets after an outage": nf.counters.gps_gap_resets,
             "rate updates": nf.counters.rate_updates,
             "rate updates rejected (gate)": nf.counters.rate_rejected,
             "sideslip updates": nf.counters.sideslip_used,

@@ -9,7 +9,7 @@ velocity axis. ``t_s`` is the time of validity on the array's clock;
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -52,6 +52,13 @@ class GpsFixes:
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
+
+    def select(self, keep: np.ndarray) -> GpsFixes:
+        """The fixes where the boolean mask ``keep`` (M,) is true, in order."""
+        keep = np.asarray(keep, dtype=bool)
+        if keep.shape != self.t_s.shape:
+            raise ValueError(f"mask has shape {keep.shape}, expected {self.t_s.shape}")
+        return GpsFixes(**{f.name: getattr(self, f.name)[keep] for f in fields(self)})
 
 
 @dataclass(frozen=True)
