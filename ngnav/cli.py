@@ -227,26 +227,26 @@ def _print_counts(counts: dict[str, int], indent: str = "  ") -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from ngnav.runconfig import write_run_config
-    from ngnav.runio import write_array_csv, write_gps_csv, write_truth_csv
+    from ngnav.runio import write_truth_csv
     from ngnav.simulate import simulate_flight
+    from telemetry.runfiles import truth_path, write_run
 
     scn = _flight(args)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     sim = simulate_flight(scn, args.run_index)
-    write_array_csv(out / "array.csv", sim.samples)
-    write_gps_csv(out / "gps.csv", sim.fixes)
-    write_run_config(sim.config, out / "config.toml")
-    write_truth_csv(out / "truth.csv", sim.truth)
+    out = write_run(args.out, sim.samples, sim.fixes, sim.config)
+    write_truth_csv(truth_path(out), sim.truth)
     print(
         f"simulated {scn.name} run {args.run_index}: {sim.samples.t_s.shape[0]} array samples "
         f"({sim.samples.n_channels} channels), {len(sim.fixes)} GPS fixes, "
-        f"{int(sim.saturated.any(axis=1).sum())} saturated samples -> {out}/"
+        f"{int(sim.saturated.any(axis=1).sum())} saturated samples -> {out}"
     )
     return 0
+
+
+def _print_reports(reports: dict[str, dict[str, int]]) -> None:
+    for src, counts in reports.items():
+        print(f"  {src}:")
+        _print_counts(counts, "    ")
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -255,28 +255,49 @@ def cmd_run(args: argparse.Namespace) -> int:
     from filters.evaluate import run_errors, summarise
     from filters.output import write_estimates_csv
     from filters.pipeline import run_filter
-    from ngnav.runconfig import read_run_config
-    from ngnav.runio import read_array_csv, read_gps_csv, read_truth_csv
+    from ngnav.runio import read_truth_csv
+    from telemetry.runfiles import is_tlog, read_run, truth_path
 
-    d = Path(args.run_dir)
-    cfg = read_run_config(d / "config.toml")
-    samples, arep = read_array_csv(d / "array.csv", cfg.layout.n_sensors)
-    fixes, grep_ = read_gps_csv(d / "gps.csv")
-    res = run_filter(samples, fixes, cfg, compensation=args.compensation, use_gps=not args.no_gps)
-    out = Path(args.out) if args.out else d / "estimates.csv"
+    src = Path(args.run)
+    inp = read_run(src)
+    cfg = inp.config
+    res = run_filter(
+        inp.samples, inp.fixes, cfg, compensation=args.compensation, use_gps=not args.no_gps
+    )
+    if args.out:
+        out = Path(args.out)
+    else:
+        out = src.with_suffix(".estimates.csv") if is_tlog(src) else src / "estimates.csv"
+    if is_tlog(out):
+        raise ValueError(f"{out}: estimates as a tlog are not written yet; use a .csv name")
     write_estimates_csv(out, res.estimates, cfg)
-    print(f"run {d}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
-    for rep in (arep, grep_):
-        print(f"  {rep.file}: {rep.rows} rows")
-        _print_counts(rep.counts, "    ")
+    print(f"run {src}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
+    _print_reports(inp.reports)
     _print_counts(res.counts)
-    if (d / "truth.csv").exists():
-        s = summarise(run_errors(res.estimates, read_truth_csv(d / "truth.csv")))
+    if truth_path(src).exists():
+        s = summarise(run_errors(res.estimates, read_truth_csv(truth_path(src))))
         print(
-            f"  against truth.csv: horizontal RMS {s.horiz_rms_m:.3f} m, vertical "
+            f"  against {truth_path(src).name}: horizontal RMS {s.horiz_rms_m:.3f} m, vertical "
             f"{s.vert_rms_m:.3f} m, roll/pitch/yaw RMS {s.roll_rms_deg:.3f}/"
             f"{s.pitch_rms_deg:.3f}/{s.yaw_rms_deg:.3f} deg"
         )
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    import shutil
+
+    from telemetry.runfiles import read_run, truth_path, write_run
+
+    inp = read_run(args.src)
+    out = write_run(args.dst, inp.samples, inp.fixes, inp.config)
+    if truth_path(args.src).exists():
+        shutil.copyfile(truth_path(args.src), truth_path(out))
+    print(
+        f"converted {args.src} -> {out}: {inp.samples.t_s.shape[0]} array samples, "
+        f"{len(inp.fixes)} GPS fixes"
+    )
+    _print_reports(inp.reports)
     return 0
 
 
@@ -379,19 +400,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--shift", default="auto", help="'auto' or a number (default: auto)")
     p.set_defaults(func=cmd_grey)
 
-    p = sub.add_parser("simulate", help="simulate a flight run as CSV + TOML files, with truth")
+    p = sub.add_parser(
+        "simulate", help="simulate a flight run (CSV + TOML directory, or a .tlog), with truth"
+    )
     _add_flight_args(p)
     p.add_argument(
         "--run-index", type=int, default=0, help="Monte Carlo index i of default_rng([seed, i])"
     )
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument(
+        "--out", required=True, help="output directory, or a file NAME.tlog (MAVLink inputs)"
+    )
     p.set_defaults(func=cmd_simulate)
 
+    p = sub.add_parser("convert", help="convert a run between a CSV directory and a .tlog")
+    p.add_argument("src", help="run directory or .tlog")
+    p.add_argument("dst", help="run directory or .tlog")
+    p.set_defaults(func=cmd_convert)
+
     p = sub.add_parser(
-        "run", help="run the filter on a run directory (config.toml, array.csv, gps.csv)"
+        "run", help="run the filter on a run directory (config.toml, array.csv, gps.csv) or tlog"
     )
-    p.add_argument("run_dir", help="directory with config.toml, array.csv, gps.csv")
-    p.add_argument("--out", help="estimates file (default: RUN_DIR/estimates.csv)")
+    p.add_argument("run", help="directory with config.toml, array.csv, gps.csv; or a .tlog")
+    p.add_argument(
+        "--out", help="estimates CSV (default: RUN/estimates.csv, or NAME.estimates.csv)"
+    )
     p.add_argument(
         "--compensation", choices=["gm11", "none", "line", "last"], help="override the config"
     )

@@ -1,0 +1,418 @@
+"""The filter's inputs as MAVLink: array samples, GPS fixes and the run configuration.
+
+Encoding (``input_frames``) turns a run (``ArraySamples``, ``GpsFixes``,
+``RunConfig``) into time-ordered frames; decoding (``InputAssembler``) turns
+decoded messages back into the same records, counting everything it drops.
+
+Fields used
+-----------
+- ``NGNAV_ARRAY_BATCH`` / ``NGNAV_ARRAY_SAMPLE``: ``time_usec`` (sample time,
+  run clock), ``accel`` (m/s^2, float32), ``valid`` (bit clear: the channel
+  becomes NaN, a held sample), ``count`` (must equal the layout's channels).
+  ``saturated`` is informative: the filter detects saturation from
+  ``range_mps2`` itself.
+- ``GPS_INPUT``: ``time_usec`` (time of validity, run clock), ``fix_type``
+  (< 3 is skipped and counted), ``lat``/``lon`` (degE7), ``alt`` (m; ngnav
+  carries the WGS-84 *ellipsoidal* height here, as in ``gps.csv``), ``vn``,
+  ``ve``, ``vd`` (m/s), ``horiz_accuracy``, ``vert_accuracy``,
+  ``speed_accuracy`` (1-sigma, m and m/s). Fields flagged in
+  ``ignore_flags`` fall back to the configured accuracies.
+- ``GPS_RAW_INT`` and ``HIL_GPS``: position, ``vel``/``cog`` or ``vn``/``ve``/``vd``;
+  accuracies they lack come from :class:`GpsDefaults`.
+- ``NGNAV_CONFIG_TEXT``: the run's ``config.toml`` in chunks (CRC-32 checked).
+
+Times: ``time_usec`` is microseconds on the run clock (``t_s * 1e6``,
+rounded to the microsecond).
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ngnav.gps import GpsFixes
+from ngnav.records import ArraySamples
+from ngnav.runconfig import RunConfig, read_run_config_text, run_config_text
+from telemetry import ngnav_mavlink as mavlink
+from telemetry.frames import FrameCounts
+
+#: Samples per NGNAV_ARRAY_BATCH frame and its float capacity.
+BATCH_MAX_SAMPLES = 6
+BATCH_FLOATS = 54
+#: Channels an NGNAV_ARRAY_SAMPLE can hold.
+SAMPLE_MAX_CHANNELS = 16
+#: Bytes of config text per NGNAV_CONFIG_TEXT chunk.
+CONFIG_CHUNK = 200
+#: GPS_INPUT ignore flags for the fields ngnav does not send (HDOP, VDOP).
+_IGNORE_DOP = mavlink.GPS_INPUT_IGNORE_FLAG_HDOP | mavlink.GPS_INPUT_IGNORE_FLAG_VDOP
+
+
+def to_usec(t_s: float | np.ndarray) -> np.ndarray:
+    """Run-clock seconds to integer microseconds (rounded)."""
+    return np.rint(np.asarray(t_s, dtype=float) * 1e6).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class GpsDefaults:
+    """Accuracies (1-sigma) used when a GPS message does not carry them."""
+
+    h_acc_m: float = 2.5
+    v_acc_m: float = 5.0
+    vel_acc_mps: float = 0.3
+
+
+def batch_messages(
+    samples: ArraySamples, saturated_mps2: float, batch: int = BATCH_MAX_SAMPLES
+) -> Iterator[tuple[int, mavlink.MAVLink_message]]:
+    """NGNAV_ARRAY_BATCH frames for ``samples`` (``batch`` samples each, the last shorter).
+
+    Yields ``(time_usec of the batch's last sample, message)``: a batch can be
+    sent once its last sample exists.
+    """
+    n = samples.n_channels
+    if not 1 <= n <= 16:
+        raise ValueError(f"a MAVLink array sample holds 1-16 channels, the run has {n}")
+    per = max(1, min(batch, BATCH_MAX_SAMPLES, BATCH_FLOATS // n))
+    t_us = to_usec(samples.t_s)
+    a = samples.accel_mps2
+    finite = np.isfinite(a)
+    bits = 1 << np.arange(n)
+    valid = (finite * bits).sum(axis=1)
+    with np.errstate(invalid="ignore"):
+        sat = ((finite & (np.abs(a) >= saturated_mps2)) * bits).sum(axis=1)
+    vals = np.where(finite, a, 0.0)
+    dt_us = int(np.median(np.diff(t_us))) if t_us.shape[0] > 1 else 0
+    for k in range(0, t_us.shape[0], per):
+        sl = slice(k, min(k + per, t_us.shape[0]))
+        m = sl.stop - sl.start
+        acc = np.zeros(BATCH_FLOATS)
+        acc[: m * n] = vals[sl].ravel()
+        v = [0] * BATCH_MAX_SAMPLES
+        s = [0] * BATCH_MAX_SAMPLES
+        v[:m] = valid[sl].tolist()
+        s[:m] = sat[sl].tolist()
+        # a batch is uniform: split where the sample grid breaks (a gap in the data)
+        msg = mavlink.MAVLink_ngnav_array_batch_message(
+            int(t_us[sl.start]), acc.tolist(), dt_us, v, s, n, m
+        )
+        yield int(t_us[sl.stop - 1]), msg
+
+
+def gps_input_message(fixes: GpsFixes, m: int) -> tuple[int, mavlink.MAVLink_message]:
+    """GPS_INPUT for fix ``m``; returns ``(arrival time_usec, message)``."""
+    t_us = int(to_usec(fixes.t_s[m]))
+    arrival = int(to_usec(fixes.t_s[m] + fixes.latency_s[m]))
+    v = fixes.vel_ned_mps[m]
+    msg = mavlink.MAVLink_gps_input_message(
+        t_us,
+        0,
+        _IGNORE_DOP,
+        0,
+        0,
+        3,
+        round(float(fixes.lat_deg[m]) * 1e7),
+        round(float(fixes.lon_deg[m]) * 1e7),
+        float(fixes.alt_m[m]),
+        0.0,
+        0.0,
+        float(v[0]),
+        float(v[1]),
+        float(v[2]),
+        float(fixes.vel_acc_mps[m]),
+        float(fixes.h_acc_m[m]),
+        float(fixes.v_acc_m[m]),
+        12,
+    )
+    return arrival, msg
+
+
+def config_messages(cfg: RunConfig) -> list[mavlink.MAVLink_message]:
+    """NGNAV_CONFIG_TEXT chunks of ``config.toml`` and one NGNAV_ARRAY_CONFIG per channel."""
+    text = run_config_text(cfg).encode("utf-8")
+    cid = zlib.crc32(text)
+    chunks = [text[i : i + CONFIG_CHUNK] for i in range(0, len(text), CONFIG_CHUNK)]
+    if len(chunks) > 65535:
+        raise ValueError("config.toml too large for NGNAV_CONFIG_TEXT")
+    out: list[mavlink.MAVLink_message] = []
+    for k, c in enumerate(chunks):
+        data = list(c) + [0] * (CONFIG_CHUNK - len(c))
+        out.append(mavlink.MAVLink_ngnav_config_text_message(cid, k, len(chunks), len(c), data))
+    lay, err = cfg.layout, cfg.known_errors
+    n = lay.n_sensors
+    for i in range(n):
+        out.append(
+            mavlink.MAVLink_ngnav_array_config_message(
+                cid,
+                lay.positions_b_m[i].tolist(),
+                lay.axes_b[i].tolist(),
+                err.position_error_b_m[i].tolist(),
+                err.axis_error_rad[i].tolist(),
+                float(cfg.scale[i]),
+                float(cfg.offset_mps2[i]),
+                float(cfg.noise_sigma_mps2[i]),
+                i,
+                n,
+            )
+        )
+    return out
+
+
+def input_frames(
+    samples: ArraySamples,
+    fixes: GpsFixes,
+    cfg: RunConfig,
+    *,
+    config_every_s: float = 10.0,
+) -> Iterator[tuple[int, mavlink.MAVLink_message]]:
+    """Every input message of a run in send order: ``(send time_usec, message)``.
+
+    The configuration goes first and every ``config_every_s``; array batches
+    when their last sample exists; GPS fixes at their arrival (time + latency).
+    """
+    cfg_msgs = config_messages(cfg)
+    gps = sorted((gps_input_message(fixes, m) for m in range(len(fixes))), key=lambda x: x[0])
+    t0 = int(to_usec(samples.t_s[0]))
+    for msg in cfg_msgs:
+        yield t0, msg
+    next_cfg = t0 + int(config_every_s * 1e6)
+    g = 0
+    for t_us, msg in batch_messages(samples, cfg.range_mps2):
+        while g < len(gps) and gps[g][0] <= t_us:
+            yield gps[g]
+            g += 1
+        if config_every_s > 0 and t_us >= next_cfg:
+            for c in cfg_msgs:
+                yield t_us, c
+            next_cfg += int(config_every_s * 1e6)
+        yield t_us, msg
+    yield from gps[g:]
+
+
+@dataclass
+class InputAssembler:
+    """Collect decoded input messages into a run, counting what is dropped.
+
+    Call :meth:`add` for every message (any type; others are ignored), then
+    :meth:`samples`, :meth:`fixes` and :meth:`config`.
+    """
+
+    n_channels: int | None = None
+    gps_defaults: GpsDefaults = field(default_factory=GpsDefaults)
+    counts: FrameCounts = field(default_factory=FrameCounts)
+
+    def __post_init__(self) -> None:
+        self._t: list[int] = []
+        self._a: list[np.ndarray] = []
+        self._last_t = -1
+        self._gps: list[tuple] = []
+        self._last_gps_t = -1
+        self._chunks: dict[int, dict[int, bytes]] = {}
+        self._totals: dict[int, int] = {}
+        self._config_text: str | None = None
+
+    # ------------------------------------------------------------- array
+    def _add_sample(self, t_us: int, values: list[float], valid: int) -> None:
+        if t_us <= self._last_t:
+            kind = (
+                "array sample duplicate time"
+                if t_us == self._last_t
+                else "array sample out of order"
+            )
+            self.counts.add(kind)
+            return
+        a = np.array(values, dtype=float)
+        ok = np.array([(valid >> i) & 1 for i in range(a.shape[0])], dtype=bool)
+        bad = ok & ~np.isfinite(a)
+        if bad.any():
+            self.counts.add("non-finite field")
+        a[~ok | bad] = np.nan
+        self._t.append(t_us)
+        self._a.append(a)
+        self._last_t = t_us
+
+    def _check_count(self, count: int) -> bool:
+        if self.n_channels is None:
+            if not 1 <= count <= SAMPLE_MAX_CHANNELS:
+                self.counts.add("wrong channel count")
+                return False
+            self.n_channels = count
+        if count != self.n_channels:
+            self.counts.add("wrong channel count")
+            return False
+        return True
+
+    def add(self, msg: mavlink.MAVLink_message) -> None:
+        """Take one decoded message."""
+        name = msg.get_type()
+        if name == "NGNAV_ARRAY_BATCH":
+            if (
+                not self._check_count(msg.count)
+                or not 1 <= msg.n <= BATCH_MAX_SAMPLES
+                or msg.n * msg.count > BATCH_FLOATS
+            ):
+                if msg.count == self.n_channels:
+                    self.counts.add("bad batch size")
+                return
+            if msg.n > 1 and msg.dt_usec == 0:
+                self.counts.add("bad batch size")
+                return
+            c = msg.count
+            for j in range(msg.n):
+                self._add_sample(
+                    msg.time_usec + j * msg.dt_usec, msg.accel[j * c : (j + 1) * c], msg.valid[j]
+                )
+        elif name == "NGNAV_ARRAY_SAMPLE":
+            if self._check_count(msg.count):
+                self._add_sample(msg.time_usec, msg.accel[: msg.count], msg.valid)
+        elif name == "GPS_INPUT":
+            self._add_gps_input(msg)
+        elif name == "GPS_RAW_INT":
+            self._add_gps_raw(msg, msg.time_usec, msg.fix_type, msg.vel, msg.cog, None)
+        elif name == "HIL_GPS":
+            self._add_gps_raw(
+                msg, msg.time_usec, msg.fix_type, msg.vel, msg.cog, (msg.vn, msg.ve, msg.vd)
+            )
+        elif name == "NGNAV_CONFIG_TEXT":
+            self._add_chunk(msg)
+
+    # --------------------------------------------------------------- gps
+    def _push_gps(self, t_us: int, row: tuple[float, ...]) -> None:
+        if not all(math.isfinite(x) for x in row):
+            self.counts.add("non-finite field")
+            return
+        if row[6] <= 0 or row[7] <= 0 or row[8] <= 0:
+            self.counts.add("gps accuracy not positive")
+            return
+        if t_us <= self._last_gps_t:
+            kind = "gps duplicate time" if t_us == self._last_gps_t else "gps out of order"
+            self.counts.add(kind)
+            return
+        self._last_gps_t = t_us
+        self._gps.append((t_us, *row))
+
+    def _add_gps_input(self, msg) -> None:
+        if msg.fix_type < 3:
+            self.counts.add("gps without fix")
+            return
+        d = self.gps_defaults
+        f = msg.ignore_flags
+        h = (
+            d.h_acc_m
+            if f & mavlink.GPS_INPUT_IGNORE_FLAG_HORIZONTAL_ACCURACY
+            else msg.horiz_accuracy
+        )
+        v = d.v_acc_m if f & mavlink.GPS_INPUT_IGNORE_FLAG_VERTICAL_ACCURACY else msg.vert_accuracy
+        s = (
+            d.vel_acc_mps
+            if f & mavlink.GPS_INPUT_IGNORE_FLAG_SPEED_ACCURACY
+            else msg.speed_accuracy
+        )
+        if f & (mavlink.GPS_INPUT_IGNORE_FLAG_VEL_HORIZ | mavlink.GPS_INPUT_IGNORE_FLAG_VEL_VERT):
+            self.counts.add("gps without velocity")
+            return
+        self._push_gps(
+            msg.time_usec,
+            (msg.lat * 1e-7, msg.lon * 1e-7, msg.alt, msg.vn, msg.ve, msg.vd, h, v, s),
+        )
+
+    def _add_gps_raw(self, msg, t_us: int, fix_type: int, vel_cms: int, cog_cdeg: int, ned) -> None:
+        if fix_type < 3:
+            self.counts.add("gps without fix")
+            return
+        if ned is not None:
+            vn, ve, vd = (x / 100.0 for x in ned)
+        else:
+            if vel_cms == 65535 or cog_cdeg == 65535:
+                self.counts.add("gps without velocity")
+                return
+            cog = math.radians(cog_cdeg / 100.0)
+            vn, ve, vd = vel_cms / 100.0 * math.cos(cog), vel_cms / 100.0 * math.sin(cog), 0.0
+        d = self.gps_defaults
+        self._push_gps(
+            t_us,
+            (
+                msg.lat * 1e-7,
+                msg.lon * 1e-7,
+                msg.alt / 1000.0,
+                vn,
+                ve,
+                vd,
+                d.h_acc_m,
+                d.v_acc_m,
+                d.vel_acc_mps,
+            ),
+        )
+
+    # ------------------------------------------------------------ config
+    def _add_chunk(self, msg) -> None:
+        cid, total = msg.config_id, msg.total
+        if (
+            self._config_text is not None
+            or total == 0
+            or msg.seq >= total
+            or msg.length > CONFIG_CHUNK
+        ):
+            if self._config_text is None:
+                self.counts.add("bad config chunk")
+            return
+        self._totals[cid] = total
+        self._chunks.setdefault(cid, {})[msg.seq] = bytes(msg.data[: msg.length])
+        got = self._chunks[cid]
+        if len(got) == total:
+            text = b"".join(got[k] for k in range(total))
+            if zlib.crc32(text) != cid:
+                self.counts.add("bad config chunk")
+                del self._chunks[cid]
+                return
+            self._config_text = text.decode("utf-8", errors="replace")
+
+    # ----------------------------------------------------------- results
+    def config(self, where: str = "tlog") -> RunConfig:
+        """The run configuration carried by the stream (ValueError if none arrived whole)."""
+        if self._config_text is None:
+            raise ValueError(f"{where}: no complete NGNAV_CONFIG_TEXT configuration in the stream")
+        return read_run_config_text(self._config_text, where)
+
+    def samples(self) -> ArraySamples:
+        """The array samples on a uniform grid; gaps are filled with held (NaN) rows, counted."""
+        if len(self._t) < 2:
+            raise ValueError(
+                f"the stream holds {len(self._t)} array samples; at least 2 are needed"
+            )
+        t = np.array(self._t, dtype=np.int64)
+        a = np.array(self._a)
+        d = np.diff(t)
+        dt = int(np.median(d))
+        off = (t - t[0]) % dt
+        on_grid = (off == 0) | (off == dt)  # allow 1 us rounding either way
+        on_grid |= np.minimum(off, dt - off) <= max(1, dt // 1000)
+        self.counts.add("array sample off the grid", int(np.count_nonzero(~on_grid)))
+        t, a = t[on_grid], a[on_grid]
+        k = np.rint((t - t[0]) / dt).astype(np.int64)
+        keep = np.concatenate([[True], np.diff(k) > 0])
+        t, a, k = t[keep], a[keep], k[keep]
+        n_total = int(k[-1]) + 1
+        self.counts.add("missing samples filled", n_total - k.shape[0])
+        full = np.full((n_total, a.shape[1]), np.nan)
+        full[k] = a
+        t_s = (t[0] + np.arange(n_total) * dt) * 1e-6
+        return ArraySamples(t_s, full)
+
+    def fixes(self) -> GpsFixes:
+        """The accepted GPS fixes, in time order."""
+        g = np.array(self._gps, dtype=float).reshape(-1, 10)
+        return GpsFixes(
+            t_s=g[:, 0] * 1e-6,
+            lat_deg=g[:, 1],
+            lon_deg=g[:, 2],
+            alt_m=g[:, 3],
+            vel_ned_mps=g[:, 4:7],
+            h_acc_m=g[:, 7],
+            v_acc_m=g[:, 8],
+            vel_acc_mps=g[:, 9],
+            latency_s=np.zeros(g.shape[0]),
+        )
