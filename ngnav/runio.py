@@ -135,6 +135,31 @@ def _check_times(path: Path, t: np.ndarray) -> None:
         )
 
 
+def fill_sample_gaps(
+    t0: float, dt: float, k: np.ndarray, acc: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Put samples on their uniform grid, missing grid points as held (NaN) rows.
+
+    Parameters
+    ----------
+    t0, dt : float
+        Time of grid point 0 and the grid step (same unit as the result).
+    k : array (M,) of int
+        Strictly increasing grid index of each sample.
+    acc : array (M, N)
+        The samples.
+
+    Returns
+    -------
+    t : array (T,), full : array (T, N), filled : int
+        Grid times, samples with NaN rows at the gaps, number of rows filled.
+    """
+    n_total = int(k[-1]) + 1
+    full = np.full((n_total, acc.shape[1]), np.nan)
+    full[k] = acc
+    return t0 + np.arange(n_total) * dt, full, n_total - acc.shape[0]
+
+
 def read_array_csv(path: str | Path, n_channels: int) -> tuple[ArraySamples, ReadReport]:
     """Read ``array.csv`` for a layout of ``n_channels`` channels (see module docstring)."""
     p = Path(path)
@@ -163,13 +188,8 @@ def read_array_csv(path: str | Path, n_channels: int) -> tuple[ArraySamples, Rea
         )
     acc = data[:, 1:]
     if np.any(steps > 1):
-        n_total = int(steps.sum()) + 1
-        pos = np.concatenate([[0], np.cumsum(steps)])
-        full = np.full((n_total, n_channels), np.nan)
-        full[pos] = acc
-        report.add("missing samples filled", n_total - acc.shape[0])
-        t = t[0] + np.arange(n_total) * dt
-        acc = full
+        t, acc, filled = fill_sample_gaps(t[0], dt, np.concatenate([[0], np.cumsum(steps)]), acc)
+        report.add("missing samples filled", filled)
     report.add(
         "bad samples (non-finite cell)",
         int(np.count_nonzero(~np.all(np.isfinite(data[:, 1:]), axis=1))),

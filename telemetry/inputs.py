@@ -37,6 +37,7 @@ import numpy as np
 from ngnav.gps import GpsFixes
 from ngnav.records import ArraySamples
 from ngnav.runconfig import RunConfig, read_run_config_text, run_config_text
+from ngnav.runio import fill_sample_gaps
 from telemetry import ngnav_mavlink as mavlink
 from telemetry.frames import FrameCounts
 
@@ -95,7 +96,6 @@ def batch_messages(
         s = [0] * BATCH_MAX_SAMPLES
         v[:m] = valid[sl].tolist()
         s[:m] = sat[sl].tolist()
-        # a batch is uniform: split where the sample grid breaks (a gap in the data)
         msg = mavlink.MAVLink_ngnav_array_batch_message(
             int(t_us[sl.start]), acc.tolist(), dt_us, v, s, n, m
         )
@@ -395,12 +395,9 @@ class InputAssembler:
         k = np.rint((t - t[0]) / dt).astype(np.int64)
         keep = np.concatenate([[True], np.diff(k) > 0])
         t, a, k = t[keep], a[keep], k[keep]
-        n_total = int(k[-1]) + 1
-        self.counts.add("missing samples filled", n_total - k.shape[0])
-        full = np.full((n_total, a.shape[1]), np.nan)
-        full[k] = a
-        t_s = (t[0] + np.arange(n_total) * dt) * 1e-6
-        return ArraySamples(t_s, full)
+        t_us, full, filled = fill_sample_gaps(float(t[0]), float(dt), k, a)
+        self.counts.add("missing samples filled", filled)
+        return ArraySamples(t_us * 1e-6, full)
 
     def fixes(self) -> GpsFixes:
         """The accepted GPS fixes, in time order."""
