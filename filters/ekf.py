@@ -115,6 +115,9 @@ class GpsUpdateResult:
     nis_vel: float
     pos_accepted: bool
     vel_accepted: bool
+    #: The position NIS split: horizontal (2 dof) and vertical (1 dof), before the update.
+    nis_pos_h: float = float("nan")
+    nis_pos_v: float = float("nan")
 
 
 @dataclass
@@ -187,6 +190,7 @@ class NavFilter:
         self._sfw = self.noise.feature_cov[3:6, 0:3]
         self._sqq = self.noise.feature_cov[6:, 6:]
         self._consec_rejects = 0
+        self.last_rate_innovation = np.zeros(self.layout.nq)
         self._last_wdot = np.zeros(3)
         self._last_f = np.zeros(3)
         # the constant part of the error dynamics, copied and filled per block
@@ -439,6 +443,7 @@ class NavFilter:
         if self.layout.n_dr:
             pred = pred + sg[6:] @ self.dr
         y = quad_mean - pred
+        self.last_rate_innovation = y
         s = h @ self.P @ h.T + r
         nis = _quadratic_form(y, s)
         if nis > self.gate_q:
@@ -543,8 +548,11 @@ class NavFilter:
         cr, _, hp, _ = self.gps_model(self.q, self.w)
         rp = np.diag(np.broadcast_to(np.asarray(pos_sigma_m, dtype=float), 3) ** 2)
         yp = pos_ned_m - (self.pos + cr + self.vel * dt_fix_s)
+        sp = hp @ self.P @ hp.T + rp
+        nis_h = _quadratic_form(yp[0:2], sp[0:2, 0:2])
+        nis_vt = float(yp[2] ** 2 / sp[2, 2]) if sp[2, 2] > 0 else float("inf")
         if reset:
-            nis_p = _quadratic_form(yp, hp @ self.P @ hp.T + rp)
+            nis_p = _quadratic_form(yp, sp)
             if np.isfinite(nis_p) and nis_p <= self.gate3:
                 _, cwr, _, hv = self.gps_model(self.q, self.w)
                 yv = vel_ned_mps - (self.vel + cwr)
@@ -554,11 +562,11 @@ class NavFilter:
                 )
                 self.counters.gps_gap_resets += 1
                 self.counters.gps_used += 1
-                return GpsUpdateResult(nis_p, nis_v, True, True)
+                return GpsUpdateResult(nis_p, nis_v, True, True, nis_h, nis_vt)
             self.counters.gps_rejected_pos += 1
             self.counters.gps_rejected_vel += 1
             self._consec_rejects += 1
-            return GpsUpdateResult(nis_p, float("nan"), False, False)
+            return GpsUpdateResult(nis_p, float("nan"), False, False, nis_h, nis_vt)
         nis_p, ok_p = self._gated_update(yp, rp, hp)
         _, cwr, _, hv = self.gps_model(self.q, self.w)  # after the position update
         rv = np.eye(3) * float(vel_sigma_mps) ** 2
@@ -570,7 +578,7 @@ class NavFilter:
         self._consec_rejects = 0 if ok_p else self._consec_rejects + 1
         if ok_p:
             self.t_last_position_fix = self.t_s
-        return GpsUpdateResult(nis_p, nis_v, ok_p, ok_v)
+        return GpsUpdateResult(nis_p, nis_v, ok_p, ok_v, nis_h, nis_vt)
 
     def sideslip_model(self, q_nb: np.ndarray, vel_ned_mps: np.ndarray) -> tuple[float, np.ndarray]:
         """Body-lateral velocity ``e_y . C^T v`` (m/s) and its Jacobian (1, n)."""

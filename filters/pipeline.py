@@ -21,6 +21,7 @@ is the filter's own rate estimate, so the compensation does not drift.
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -141,6 +142,688 @@ def _static_tilt(f_b: np.ndarray) -> tuple[float, float]:
     return roll, pitch
 
 
+class Pipeline:
+    """The whole chain run as a stream: push samples and fixes, get estimates.
+
+    One block at a time: the compensation's forecast, the nominal propagation,
+    the covariance prediction, the rate-product update, the GPS fixes that fall
+    in the block (at their time of validity), the sideslip model, the checks.
+    Estimates are recorded at every block end; ``on_epoch(pipeline)`` is called
+    after each (the MAVLink output reads :attr:`nf` and :attr:`last_gps` there).
+
+    Inputs may arrive in any interleaving (a live link delivers a fix
+    ``latency`` after its time of validity): the filter's fusion horizon runs
+    ``cfg.filter.fusion_lag_s`` behind the newest sample (PX4 EKF2's delayed
+    horizon), so a fix that arrives within that lag is fused exactly where an
+    offline run fuses it. A later fix is fused at the next block end with a
+    ``v dt`` time shift and counted. The result therefore depends only on the
+    samples, the fixes and the order of their arrival, not on how they were
+    chunked or how fast they came: a tlog replay and the live link of the same
+    run give the same estimates.
+
+    Before the filter starts (a fix after the static alignment period, and the
+    samples up to it plus the lag) everything is buffered.
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        What the filter knows (see :mod:`ngnav.runconfig`).
+    dt_s : float, optional
+        The array's sample interval. Default: the median interval of the
+        samples received before the filter starts.
+    compensation, use_gps, true_layout, truth, bound
+        As for :func:`run_filter`.
+    on_epoch : callable, optional
+        Called with the pipeline after every recorded epoch.
+    keep_estimates : bool
+        Keep every epoch for :meth:`result` (False for an endless live link:
+        :meth:`result` then holds the latest epoch only).
+
+    Raises
+    ------
+    ValueError
+        Bad configuration or a rate-aided layout (at construction); no valid
+        sample in the alignment period (at the start); no usable GPS fix (at
+        :meth:`finish`).
+    filters.ekf.CovarianceError
+        If the covariance stops being symmetric positive definite.
+    """
+
+    def __init__(
+        self,
+        cfg: RunConfig,
+        *,
+        dt_s: float | None = None,
+        compensation: str | None = None,
+        use_gps: bool = True,
+        true_layout: ArrayLayout | None = None,
+        truth: FlightTruth | None = None,
+        bound: bool = False,
+        on_epoch=None,
+        keep_estimates: bool = True,
+    ) -> None:
+        method = compensation or cfg.filter.compensation
+        if method == "oracle" and (true_layout is None or truth is None):
+            raise ValueError(
+                "compensation 'oracle' needs the true geometry and motion (simulations)"
+            )
+        if bound and truth is None:
+            raise ValueError("the bound needs the truth")
+        solver = ArraySolver(cfg.layout, cfg.noise_sigma_mps2)
+        if solver.rate_aided:
+            raise ValueError(
+                f"layout {cfg.layout.name!r} cannot solve its rate terms; the filter needs a "
+                "layout that solves angular acceleration, force and rate products (e.g. nine-cube)"
+            )
+        if dt_s is not None and not (np.isfinite(dt_s) and dt_s > 0):
+            raise ValueError(f"dt_s must be a positive number, got {dt_s}")
+        self.cfg = cfg
+        self.method = method
+        self.use_gps = use_gps
+        self.true_layout = true_layout
+        self.truth = truth
+        self.bound = bound
+        self.on_epoch = on_epoch
+        self.keep_estimates = keep_estimates
+        self.n_epochs = 0
+        self.n_channels = cfg.layout.n_sensors
+        self.solver = solver
+        cols = solver.solved_columns
+        self._cols = cols
+        quad_cols = cols[cols >= 6] - 6
+        self._pairs = np.column_stack([_QUAD_I[quad_cols], _QUAD_J[quad_cols]])
+        self._smat = solver.solve_matrix
+        self._se = None
+        if method in ("gm11", "line", "last"):
+            self._se = self._smat @ cfg.known_errors.error_matrix(cfg.layout)  # (k, 12)
+        self._e_true = None
+        if method == "oracle":
+            self._e_true = self._smat @ (true_layout.design - cfg.layout.design)
+        self.dt = dt_s
+        self._k = cols.shape[0]
+        # sample store: global index g lives at row g - base
+        self._t = np.empty(0)
+        self._sa = np.empty((0, self._k))
+        self._inv = np.empty(0, dtype=bool)
+        self._chmask = np.empty(0, dtype=np.int64)  # bit i: channel i invalid or saturated
+        self._bits = 1 << np.arange(self.n_channels, dtype=np.int64)
+        self._base = 0
+        self._n = 0  # samples received (global count)
+        self._fixes: list[tuple] = []  # (t, ned(3), vel(3), sig(3), vel_acc, arrival order)
+        self._pending: list[tuple[int, int, tuple]] = []  # (idx, order, fix) after the start
+        self._late: list[tuple] = []
+        self._n_fix = 0
+        self.counts: dict[str, int] = {
+            "samples held (non-finite)": 0,
+            "samples held (saturated)": 0,
+            "gps fixes outside the array's time span": 0,
+            "gps fixes before the filter start": 0,
+            "gps fixes later than the fusion lag": 0,
+        }
+        self._ltp = LocalTangentPlane(cfg.lat0_deg, cfg.lon0_deg, cfg.alt0_m)
+        self.started = False
+        self.finished = False
+        self.nf: NavFilter | None = None
+        self.last_gps = None
+        self.last_gps_t = -np.inf
+        self.last_rate_nis = float("nan")
+        self.block_faulty = 0
+        self.block_fallbacks = 0
+        self._rec: list[tuple] = []
+        self._inn: list[tuple] = []
+        self._rate_nis: list[float] = []
+        self.n_fallbacks = 0
+
+    # ------------------------------------------------------------------ input
+    def push_samples(self, t_s: np.ndarray, accel_mps2: np.ndarray) -> int:
+        """Take consecutive array samples (K,), (K, N) m/s^2; returns epochs recorded.
+
+        The samples must continue the uniform grid (a gap is the caller's to
+        fill with NaN rows, as the readers do); non-finite and saturated rows
+        are held and counted.
+        """
+        if self.finished:
+            raise ValueError("the pipeline has finished; it takes no more samples")
+        t_s = np.asarray(t_s, dtype=float).reshape(-1)
+        raw = np.asarray(accel_mps2, dtype=float).reshape(t_s.shape[0], -1)
+        if raw.shape[1] != self.n_channels:
+            raise ValueError(
+                f"config layout has {self.n_channels} channels, the array data has {raw.shape[1]}"
+            )
+        if t_s.shape[0] == 0:
+            return 0
+        cfg = self.cfg
+        finite = np.all(np.isfinite(raw), axis=1)
+        with np.errstate(invalid="ignore"):
+            saturated = finite & np.any(np.abs(raw) >= cfg.range_mps2 * (1 - 1e-9), axis=1)
+        invalid = ~finite | saturated
+        self.counts["samples held (non-finite)"] += int(np.count_nonzero(~finite))
+        self.counts["samples held (saturated)"] += int(np.count_nonzero(saturated))
+        a = (np.where(invalid[:, None], cfg.offset_mps2, raw) - cfg.offset_mps2) / cfg.scale
+        sa = a @ self._smat.T  # (K, k) solved features, before compensation
+        if self._e_true is not None:
+            # the exact mounting-error term: true geometry, true motion
+            tr = self.truth
+            g = slice(self._n, self._n + t_s.shape[0])
+            phi = kinematic_features(tr.omega_dot_b_rps2[g], tr.f_b_mps2[g], tr.omega_b_rps[g])
+            sa -= phi @ self._e_true.T
+        with np.errstate(invalid="ignore"):
+            bad_ch = ~np.isfinite(raw) | (np.abs(raw) >= cfg.range_mps2 * (1 - 1e-9))
+        self._append(t_s, sa, invalid, bad_ch @ self._bits)
+        return self._advance()
+
+    def push_fix(
+        self,
+        t_s: float,
+        lat_deg: float,
+        lon_deg: float,
+        alt_m: float,
+        vel_ned_mps: np.ndarray,
+        h_acc_m: float,
+        v_acc_m: float,
+        vel_acc_mps: float,
+    ) -> int:
+        """Take one GPS fix (time of validity, WGS-84, NED velocity, 1-sigma); returns epochs."""
+        if self.finished:
+            raise ValueError("the pipeline has finished; it takes no more fixes")
+        ned = self._ltp.to_ned(
+            np.array([lat_deg], dtype=float),
+            np.array([lon_deg], dtype=float),
+            np.array([alt_m], dtype=float),
+        )[0]
+        fix = (
+            float(t_s),
+            ned,
+            np.array(vel_ned_mps, dtype=float).reshape(3),
+            np.array([h_acc_m, h_acc_m, v_acc_m], dtype=float),
+            float(vel_acc_mps),
+            self._n_fix,
+        )
+        self._n_fix += 1
+        if not self.started:
+            self._fixes.append(fix)
+            return self._advance()
+        self._place_fix(fix)
+        return self._advance()
+
+    def finish(self) -> int:
+        """No more input: process the buffered tail; returns epochs recorded.
+
+        Raises ValueError if the filter never started (no usable fix).
+        """
+        if self.finished:
+            return 0
+        if not self.started:
+            if self._n < 2:
+                raise ValueError(f"the run holds {self._n} array samples; at least 2 are needed")
+            if not self._try_start(final=True):
+                raise ValueError(
+                    "no GPS fix after the alignment period: cannot set position and velocity"
+                )
+        self.finished = True
+        n_before = self.n_epochs
+        last = self._n - 1
+        t_last = self._t[last - self._base]
+        keep = []
+        for idx, order, fix in self._pending:
+            if idx > last:
+                if fix[0] <= t_last + self.dt / 2:
+                    keep.append((last, order, fix))
+                else:
+                    self.counts["gps fixes outside the array's time span"] += 1
+            else:
+                keep.append((idx, order, fix))
+        self._pending = sorted(keep)
+        self._run_blocks(final=True)
+        return self.n_epochs - n_before
+
+    # ---------------------------------------------------------------- start
+    def _place_fix(self, fix: tuple) -> None:
+        """File a fix that arrived after the start (pending, late or outside)."""
+        t_fix = fix[0]
+        if t_fix < self._t0 - self.dt / 2:
+            self.counts["gps fixes outside the array's time span"] += 1
+            return
+        idx = int(np.rint((t_fix - self._t0) / self.dt))
+        if idx <= self._i0:
+            if idx <= self._i_start:
+                self.counts["gps fixes before the filter start"] += 1
+                return
+            self.counts["gps fixes later than the fusion lag"] += 1
+            self._late.append(fix)
+            return
+        bisect.insort(self._pending, (idx, fix[5], fix))
+
+    def _advance(self) -> int:
+        n_before = self.n_epochs
+        if not self.started and not self._try_start(final=False):
+            return 0
+        self._run_blocks(final=False)
+        return self.n_epochs - n_before
+
+    def _try_start(self, final: bool) -> bool:
+        cfg = self.cfg
+        ini = cfg.initial
+        t = self._t[: self._n]  # nothing is dropped before the start: base is 0
+        if self._n < 2:
+            return False
+        if self.dt is None:
+            if self._n < 9 and not final:
+                return False
+            self.dt = float(np.median(np.diff(t)))
+            if not self.dt > 0:
+                raise ValueError("array sample times do not increase")
+        dt = self.dt
+        t0 = t[0]
+        if ini.alignment == "static":
+            if t[-1] < t0 + ini.static_s and not final:
+                return False
+            i_align = int(np.searchsorted(t, t0 + ini.static_s))
+        else:
+            i_align = 0
+        lag_n = self._lag_n()
+        best = None
+        for fix in self._fixes:
+            inside = fix[0] >= t0 - dt / 2 and fix[0] <= t[-1] + dt / 2
+            idx = min(int(np.rint((fix[0] - t0) / dt)), self._n - 1)
+            if not inside or idx < i_align:
+                continue
+            if best is None or (fix[0], fix[5]) < (best[1][0], best[1][5]):
+                best = (idx, fix)
+        if best is None:
+            return False
+        i_start, first = best
+        if not final and self._n - 1 < i_start + lag_n:
+            return False  # an earlier fix may still arrive within the lag
+        self._t0 = t0
+        self._start(i_start, first)
+        rest = [f for f in self._fixes if f is not first]
+        self._fixes = []
+        for fix in sorted(rest, key=lambda f: f[5]):
+            self._place_fix(fix)
+        return True
+
+    def _lag_n(self) -> int:
+        return int(np.ceil(self.cfg.filter.fusion_lag_s / self.dt - 1e-9))
+
+    def _start(self, i_start: int, first: tuple) -> None:
+        cfg = self.cfg
+        ini = cfg.initial
+        sa, invalid, t = self._sa[: self._n], self._inv[: self._n], self._t[: self._n]
+        se = self._se
+        dt = self.dt
+        noise = filter_noise(self.solver, cfg)
+        if self.method == "oracle":
+            # the oracle removes the whole geometry error: nothing left to estimate
+            noise = replace(noise, position_sigma_m=0.0)
+        self.noise = noise
+        nf = NavFilter(
+            noise,
+            self._pairs,
+            cfg.antenna_b_m,
+            cfg.filter.gate_probability,
+            sensor_axes_b=cfg.layout.axes_b,
+            solve_matrix=self._smat,
+        )
+        self.nf = nf
+        nq = self._pairs.shape[0]
+        self._nq = nq
+        g_ranges = np.repeat(
+            [
+                np.deg2rad(cfg.filter.rate_range_dps),
+                cfg.range_mps2 / (cfg.layout.lever_arm_m or 0.1),
+                cfg.range_mps2,
+            ],
+            3,
+        )
+        self.predictor = _predictor(self.method, cfg.filter.window, g_ranges)
+        window = self.predictor.window if self.predictor is not None else 1
+        self._window = window
+        f_t, f_ned, f_vel, f_sig, f_vacc, _ = first
+
+        # --- initial attitude
+        yaw0 = np.deg2rad(ini.yaw_deg)
+        if ini.alignment == "static":
+            span = slice(0, max(i_start, 1) + 1)
+            ok = ~invalid[span]
+            if not np.any(ok):
+                raise ValueError("no valid array sample in the static alignment period")
+            f_mean = sa[span][ok].mean(axis=0)
+            if se is not None:
+                phi = np.zeros(12)
+                for _ in range(3):
+                    phi[3:6] = f_mean[3:6] - (se @ phi)[3:6]
+                f_b = phi[3:6]
+            else:
+                f_b = f_mean[3:6]
+            roll0, pitch0 = _static_tilt(f_b)
+            # at rest the angular-acceleration and rate-product means are their biases
+            static_mean = f_mean - (se @ phi if se is not None else 0.0)
+            n_avg = int(np.count_nonzero(ok))
+            tilt_noise = np.sqrt(noise.feature_cov[3, 3] / n_avg) / G0_MPS2
+            att_sigma = np.array([tilt_noise, tilt_noise, np.deg2rad(ini.heading_sigma_deg)])
+        else:
+            roll0, pitch0 = np.deg2rad(ini.roll_deg), np.deg2rad(ini.pitch_deg)
+            ts = np.deg2rad(ini.tilt_sigma_deg)
+            att_sigma = np.array([ts, ts, np.deg2rad(ini.heading_sigma_deg)])
+        self._heading_pending = ini.heading_source == "gps"
+        if self._heading_pending:
+            att_sigma[2] = np.deg2rad(30.0)
+        q0 = quat_from_euler(roll0, pitch0, yaw0)
+        c0 = dcm_from_quat(q0)
+        nf.initialise(
+            t[i_start],
+            f_ned - c0 @ cfg.antenna_b_m,
+            f_vel,
+            q0,
+            np.zeros(3),
+            f_sig,
+            f_vacc,
+            att_sigma,
+            np.deg2rad(ini.rate_sigma_dps),
+        )
+        if ini.alignment == "static":
+            # the levelled attitude absorbs the horizontal force bias: correlate them exactly
+            jm = np.zeros((2, 3))
+            jm[0, 1] = 1.0 / G0_MPS2
+            jm[1, 0] = -1.0 / G0_MPS2
+            j = np.zeros((2, nf.layout.n))
+            j[:, B_F] = jm @ c0
+            p = nf.P
+            p[6:8, :] = j @ p
+            p[:, 6:8] = p[6:8, :].T
+            p[6:8, 6:8] = j @ nf.P @ j.T + np.eye(2) * tilt_noise**2
+            p[6:8, 8] = 0.0
+            p[8, 6:8] = 0.0
+            nf.P = p
+            nf.update_static_biases(static_mean, n_avg)
+            nf.check_covariance("static alignment")
+        self.last_gps_t = f_t
+
+        # --- bound: the same covariance recursion, linearised at the truth
+        self._p_bound = None
+        truth = self.truth
+        if truth is not None and truth.t_s.shape[0] < self._n:
+            raise ValueError("truth must be sampled at the array's sample times")
+        if self.bound:
+            self._p_bound = nf.P.copy()
+            self._c_true = dcm_from_quat(truth.q_nb)
+
+        k_reg = max(1, round(1.0 / (cfg.filter.rate_hz * dt)))
+        self._k_reg = k_reg
+        self._i_start = i_start
+        self._i0 = i_start
+        self._next_grid = i_start + k_reg
+        k_feat = self._k
+        self._record()
+        lo = max(0, i_start - k_reg)
+        seed_block = sa[lo : i_start + 1]
+        seed_ok = ~invalid[lo : i_start + 1]
+        seed_mean = seed_block[seed_ok].mean(axis=0) if np.any(seed_ok) else np.zeros(k_feat)
+        self._hist = np.empty((window + 1024, 9))
+        self._h_n = window  # rows used
+        # the forecast history holds motion: block means less the current bias estimates
+        self._hist[:window] = np.concatenate([nf.w, seed_mean[0:6] - nf.bias[0:6]])
+        self._last_mean = seed_mean.copy()
+        first_row = sa[i_start] if not invalid[i_start] else seed_mean
+        if se is not None:
+            h0 = self._hist[0]
+            first_row = first_row - se @ np.concatenate(
+                [h0[3:6], h0[6:9], rate_quadratics(h0[0:3])]
+            )
+        nf.set_last_sample(first_row[0:3], first_row[3:6])
+        self._with_dr = nf.layout.n_dr > 0
+        self._slip_sigma = np.deg2rad(cfg.filter.sideslip_sigma_deg)
+        self._t_last_slip = -np.inf
+        self._wd_smooth = np.zeros(3)
+        self._smooth_gain = min(1.0, 1.0 / (WDOT_SMOOTHING_S * cfg.filter.rate_hz))
+        self._phi_hat = np.zeros(12) if self.predictor is not None else None
+        self._full_check_every = max(1, round(cfg.filter.rate_hz))  # Cholesky once a second
+        self._e = 0
+        self.started = True
+
+    # --------------------------------------------------------------- blocks
+    def _run_blocks(self, final: bool) -> None:
+        last = self._n - 1
+        lag_n = 0 if final else self._lag_n()
+        while True:
+            i1 = self._next_grid
+            if self._pending and self._pending[0][0] < i1:
+                i1 = self._pending[0][0]
+            if final:
+                if self._i0 >= last:
+                    break
+                i1 = min(i1, last)
+            elif i1 + lag_n > last:
+                break
+            self._block(i1)
+
+    def _append(self, t_s, sa, invalid, chmask) -> None:
+        """Append rows to the sample store (amortised growth; processed rows dropped)."""
+        m = t_s.shape[0]
+        used = self._n - self._base
+        if used + m > self._t.shape[0]:
+            # drop what the blocks no longer need (keep the last processed sample)
+            drop = max(0, self._i0 - self._base) if self.started else 0
+            keep = slice(drop, used)
+            cap = max(4096, 2 * (used - drop + m))
+            for name in ("_t", "_sa", "_inv", "_chmask"):
+                old = getattr(self, name)
+                new = np.empty((cap, *old.shape[1:]), dtype=old.dtype)
+                new[: used - drop] = old[keep]
+                setattr(self, name, new)
+            self._base += drop
+            used -= drop
+        r = slice(used, used + m)
+        self._t[r] = t_s
+        self._sa[r] = sa
+        self._inv[r] = invalid
+        self._chmask[r] = chmask
+        self._n += m
+
+    def _record(self) -> None:
+        nf = self.nf
+        pb = self._p_bound[:12, :12].copy() if self._p_bound is not None else None
+        self.n_epochs += 1
+        if not self.keep_estimates:
+            self._rec.clear()
+        self._rec.append((nf.t_s, nf.pos, nf.vel, nf.q, nf.w, nf.bias, nf.P[:12, :12].copy(), pb))
+
+    def _block(self, i1: int) -> None:
+        nf = self.nf
+        dt = self.dt
+        se = self._se
+        truth = self.truth
+        p_bound = self._p_bound
+        nq = self._nq
+        i0 = self._i0
+        b = self._base
+        xs = self._sa[i0 + 1 - b : i1 + 1 - b].copy()
+        bad = self._inv[i0 + 1 - b : i1 + 1 - b]
+        kk = xs.shape[0]
+        window = self._window
+        e = self._e + 1
+        row = self._h_n
+        phi_hat = self._phi_hat
+        if self.predictor is not None:
+            x_hat, nfb = self.predictor.forecast(self._hist[row - window : row], e - 1)
+            self.n_fallbacks += nfb
+            self.block_fallbacks = nfb
+            wx, wy, wz = x_hat[0:3].tolist()
+            phi_hat[0:6] = x_hat[3:9]
+            phi_hat[6:] = (wx * wx, wy * wy, wz * wz, wy * wz, wx * wz, wx * wy)
+            xs -= se @ phi_hat
+        self.block_faulty = 0
+        if np.any(bad):
+            fill = self._last_mean if phi_hat is None else phi_hat[self._cols] + nf.bias
+            xs[bad] = fill
+            self.block_faulty = int(np.bitwise_or.reduce(self._chmask[i0 + 1 - b : i1 + 1 - b]))
+        n_ok = kk - int(np.count_nonzero(bad))
+        sg = sg_true = None
+        if self._with_dr:
+            # The sensor-position states see the block's angular acceleration as
+            # forecast from the *previous* blocks (the compensation's forecast, or a
+            # smoothed history without one): this block's own noise would correlate
+            # the Jacobian with the rate measurement's noise and drag dr.
+            wd_sg = self._wd_smooth if phi_hat is None else phi_hat[0:3]
+            sg = nf.geometry_jacobian(wd_sg, nf.w + 0.5 * kk * dt * wd_sg)
+            if p_bound is not None:
+                blk = slice(i0 + 1, i1 + 1)
+                sg_true = nf.geometry_jacobian(
+                    truth.omega_dot_b_rps2[blk].mean(axis=0), truth.omega_b_rps[blk].mean(axis=0)
+                )
+        w_blk = nf.propagate(xs[:, 0:3], xs[:, 3:6], dt, sg)
+        if p_bound is not None:
+            c_true = self._c_true
+            f_n_true = np.mean(
+                np.einsum("kij,kj->ki", c_true[i0 + 1 : i1 + 1], truth.f_b_mps2[i0 + 1 : i1 + 1]),
+                axis=0,
+            )
+            fb, qb = nf.propagation_matrices(kk, dt, c_true[i0], f_n_true, sg_true)
+            _, p_bound = kf_predict(np.zeros(nf.layout.n), p_bound, fb, qb)
+        if n_ok and nq:
+            quad = xs[:, 6:] if n_ok == kk else xs[~bad, 6:]
+            nis = nf.update_rate(quad.sum(axis=0) * (1.0 / n_ok), w_blk, n_ok, sg)
+            self.last_rate_nis = np.nan if nis is None else nis
+            if self.keep_estimates:
+                self._rate_nis.append(self.last_rate_nis)
+            if p_bound is not None and nis is not None and nis <= nf.gate_q:
+                _, hb = nf.rate_model(truth.omega_b_rps[i0 + 1 : i1 + 1], sg_true)
+                _, p_bound = kf_update(
+                    np.zeros(nf.layout.n),
+                    p_bound,
+                    np.zeros(nq),
+                    self.noise.feature_cov[6:, 6:] / n_ok,
+                    hb,
+                )
+        good = xs[~bad] if 0 < n_ok < kk else xs
+        self._last_mean = good.sum(axis=0) * (1.0 / good.shape[0])
+        if row == self._hist.shape[0]:
+            # a sliding window: keep the rows the next forecasts read
+            self._hist[:window] = self._hist[row - window : row]
+            row = window
+        self._hist[row] = np.concatenate([nf.w, self._last_mean[0:6] - nf.bias[0:6]])
+        self._h_n = row + 1
+        self._wd_smooth += self._smooth_gain * (
+            self._last_mean[0:3] - nf.bias[0:3] - self._wd_smooth
+        )
+        fixes = []
+        while self._pending and self._pending[0][0] == i1:
+            fixes.append(self._pending.pop(0)[2])
+        fixes.extend(self._late)
+        self._late = []
+        for fix in fixes:
+            self._fuse_fix(fix, i1, p_bound)
+            p_bound = self._p_bound
+        if (
+            self._slip_sigma > 0
+            and self.use_gps
+            and nf.t_s - self._t_last_slip >= 1.0 / SIDESLIP_RATE_HZ - dt / 2
+        ):
+            # the vehicle model holds with or without fixes (outages included)
+            self._t_last_slip = nf.t_s
+            nis_s = nf.update_sideslip(self._slip_sigma, COURSE_MIN_SPEED_MPS)
+            if p_bound is not None and nis_s is not None and nis_s <= nf.gate1:
+                v_true = truth.vel_ned_mps[i1]
+                _, hs = nf.sideslip_model(truth.q_nb[i1], v_true)
+                r_s = (np.hypot(v_true[0], v_true[1]) * np.tan(self._slip_sigma)) ** 2
+                _, p_bound = kf_update(
+                    np.zeros(nf.layout.n), p_bound, np.zeros(1), np.array([[r_s]]), hs
+                )
+        self._p_bound = p_bound
+        nf.check_covariance("block", full=bool(fixes) or e % self._full_check_every == 0)
+        self._e = e
+        self._i0 = i1
+        if i1 >= self._next_grid:
+            self._next_grid += self._k_reg
+        self._record()
+        if self.on_epoch is not None:
+            self.on_epoch(self)
+
+    def _fuse_fix(self, fix: tuple, i1: int, p_bound: np.ndarray | None) -> None:
+        if not self.use_gps:
+            return
+        nf = self.nf
+        truth = self.truth
+        t_fix, ned, vel, sig, vacc, _ = fix
+        gap_reset_s = self.cfg.filter.gps_gap_reset_s
+        gap = gap_reset_s > 0 and nf.t_s - nf.t_last_position_fix > gap_reset_s
+        res = nf.update_gps(ned, vel, sig, vacc, t_fix - nf.t_s, reset=gap)
+        if self.keep_estimates:
+            self._inn.append((t_fix, res.nis_pos, res.nis_vel, res.pos_accepted, res.vel_accepted))
+        self.last_gps = res
+        self.last_gps_t = t_fix
+        if p_bound is not None:
+            _, _, hp, hv = nf.gps_model(truth.q_nb[i1], truth.omega_b_rps[i1])
+            if res.pos_accepted:
+                _, p_bound = kf_update(
+                    np.zeros(nf.layout.n), p_bound, np.zeros(3), np.diag(sig**2), hp
+                )
+            if res.vel_accepted:
+                _, p_bound = kf_update(
+                    np.zeros(nf.layout.n), p_bound, np.zeros(3), np.eye(3) * vacc**2, hv
+                )
+            self._p_bound = p_bound
+        if nf.consecutive_position_rejects >= RESET_AFTER_REJECTS:
+            nf.reset_to_fix(ned, vel, sig, vacc)
+        if self._heading_pending:
+            speed = float(np.hypot(vel[0], vel[1]))
+            if speed > COURSE_MIN_SPEED_MPS:
+                course_sigma = float(np.arctan2(3 * vacc, speed))
+                nf.set_heading(float(np.arctan2(vel[1], vel[0])), course_sigma)
+                self._heading_pending = False
+
+    # --------------------------------------------------------------- output
+    def result(self) -> RunResult:
+        """Everything recorded so far (call after :meth:`finish` for the whole run)."""
+        if not self.started:
+            raise ValueError("the filter has not started: no estimates")
+        nf = self.nf
+        rec = self._rec
+        cov = np.array([r[6] for r in rec])
+        bnd = np.array([r[7] for r in rec]) if self._p_bound is not None else None
+        estimates = Estimates(
+            np.array([r[0] for r in rec]),
+            np.array([r[1] for r in rec]),
+            np.array([r[2] for r in rec]),
+            np.array([r[3] for r in rec]),
+            np.array([r[4] for r in rec]),
+            np.array([r[5] for r in rec]),
+            cov,
+            bnd,
+        )
+        inn = np.array([r[0:3] for r in self._inn], dtype=float).reshape(-1, 3)
+        acc = np.array([r[3:5] for r in self._inn], dtype=bool).reshape(-1, 2)
+        innovations = GpsInnovations(inn[:, 0], inn[:, 1], inn[:, 2], acc[:, 0], acc[:, 1])
+        counts = dict(self.counts)
+        counts.update(
+            {
+                "blocks": nf.counters.blocks,
+                "samples used": nf.counters.samples,
+                "samples before the filter start": self._i_start,
+                "gps fixes used": nf.counters.gps_used,
+                "gps positions rejected (gate)": nf.counters.gps_rejected_pos,
+                "gps velocities rejected (gate)": nf.counters.gps_rejected_vel,
+                "gps resets after rejections": nf.counters.gps_resets,
+                "gps resets after an outage": nf.counters.gps_gap_resets,
+                "rate updates": nf.counters.rate_updates,
+                "rate updates rejected (gate)": nf.counters.rate_rejected,
+                "sideslip updates": nf.counters.sideslip_used,
+                "sideslip updates rejected (gate)": nf.counters.sideslip_rejected,
+                "grey forecasts fallen back": self.n_fallbacks,
+            }
+        )
+        return RunResult(
+            estimates,
+            innovations,
+            np.array(self._rate_nis),
+            counts,
+            self.method,
+            self._nq,
+            nf.layout.n,
+        )
+
+
 def run_filter(
     samples: ArraySamples,
     fixes: GpsFixes,
@@ -153,7 +836,10 @@ def run_filter(
     bound: bool = False,
     progress=None,
 ) -> RunResult:
-    """Run the GPS/array filter over a whole run.
+    """Run the GPS/array filter over a whole run (a :class:`Pipeline` fed in arrival order).
+
+    Fixes are pushed when they arrive (time of validity plus ``latency_s``),
+    between the samples, as a live link would deliver them.
 
     Parameters
     ----------
@@ -183,350 +869,55 @@ def run_filter(
     filters.ekf.CovarianceError
         If the covariance stops being symmetric positive definite.
     """
-    method = compensation or cfg.filter.compensation
     n = cfg.layout.n_sensors
     if samples.n_channels != n:
         raise ValueError(f"config layout has {n} channels, the array data has {samples.n_channels}")
-    if method == "oracle" and (true_layout is None or truth is None):
-        raise ValueError("compensation 'oracle' needs the true geometry and motion (simulations)")
-    solver = ArraySolver(cfg.layout, cfg.noise_sigma_mps2)
-    if solver.rate_aided:
-        raise ValueError(
-            f"layout {cfg.layout.name!r} cannot solve its rate terms; the filter needs a layout "
-            "that solves angular acceleration, force and rate products (e.g. nine-cube)"
-        )
-    cols = solver.solved_columns
-    quad_cols = cols[cols >= 6] - 6
-    pairs = np.column_stack([_QUAD_I[quad_cols], _QUAD_J[quad_cols]])
-    smat = solver.solve_matrix
-    se = None
-    if method in ("gm11", "line", "last"):
-        se = smat @ cfg.known_errors.error_matrix(cfg.layout)  # (k, 12)
-
-    raw = samples.accel_mps2
     t = samples.t_s
+    if t.shape[0] < 2:
+        raise ValueError(f"the run holds {t.shape[0]} array samples; at least 2 are needed")
+    if truth is not None and (truth.t_s.shape != t.shape or not np.allclose(truth.t_s, t)):
+        raise ValueError("truth must be sampled at the array's sample times")
+    pipe = Pipeline(
+        cfg,
+        dt_s=float(np.median(np.diff(t))),
+        compensation=compensation,
+        use_gps=use_gps,
+        true_layout=true_layout,
+        truth=truth,
+        bound=bound,
+    )
+    arrival = fixes.t_s + fixes.latency_s
+    order = np.argsort(arrival, kind="stable")
+    # the sample after which each fix arrives
+    after = np.searchsorted(t, arrival[order], side="right")
+    i = 0
     n_t = t.shape[0]
-    dt = float(np.median(np.diff(t)))
-    counts: dict[str, int] = {}
-    finite = np.all(np.isfinite(raw), axis=1)
-    with np.errstate(invalid="ignore"):
-        saturated = finite & np.any(np.abs(raw) >= cfg.range_mps2 * (1 - 1e-9), axis=1)
-    invalid = ~finite | saturated
-    counts["samples held (non-finite)"] = int(np.count_nonzero(~finite))
-    counts["samples held (saturated)"] = int(np.count_nonzero(saturated))
-    a = (np.where(invalid[:, None], cfg.offset_mps2, raw) - cfg.offset_mps2) / cfg.scale
-    sa = a @ smat.T  # (T, k) solved features, before compensation
-    if method == "oracle":
-        # the exact mounting-error term: true geometry, true motion
-        e_true = true_layout.design - cfg.layout.design
-        phi_true = kinematic_features(truth.omega_dot_b_rps2, truth.f_b_mps2, truth.omega_b_rps)
-        sa -= phi_true @ (smat @ e_true).T
-
-    ltp = LocalTangentPlane(cfg.lat0_deg, cfg.lon0_deg, cfg.alt0_m)
-    fix_ned = (
-        ltp.to_ned(fixes.lat_deg, fixes.lon_deg, fixes.alt_m) if len(fixes) else np.zeros((0, 3))
-    )
-    fix_sig = np.column_stack([fixes.h_acc_m, fixes.h_acc_m, fixes.v_acc_m])
-    fix_idx = np.clip(np.rint((fixes.t_s - t[0]) / dt).astype(int), 0, n_t - 1)
-    inside = (fixes.t_s >= t[0] - dt / 2) & (fixes.t_s <= t[-1] + dt / 2)
-    counts["gps fixes outside the array's time span"] = int(np.count_nonzero(~inside))
-
-    ini = cfg.initial
-    i_align = 0
-    if ini.alignment == "static":
-        i_align = int(np.searchsorted(t, t[0] + ini.static_s))
-    cand = np.flatnonzero(inside & (fix_idx >= i_align))
-    if cand.size == 0:
-        raise ValueError("no GPS fix after the alignment period: cannot set position and velocity")
-    first = int(cand[0])
-    i_start = int(fix_idx[first])
-
-    noise = filter_noise(solver, cfg)
-    if method == "oracle":
-        # the oracle removes the whole geometry error: nothing left to estimate
-        noise = replace(noise, position_sigma_m=0.0)
-    nf = NavFilter(
-        noise,
-        pairs,
-        cfg.antenna_b_m,
-        cfg.filter.gate_probability,
-        sensor_axes_b=cfg.layout.axes_b,
-        solve_matrix=smat,
-    )
-    nq = pairs.shape[0]
-    g_ranges = np.repeat(
-        [
-            np.deg2rad(cfg.filter.rate_range_dps),
-            cfg.range_mps2 / (cfg.layout.lever_arm_m or 0.1),
-            cfg.range_mps2,
-        ],
-        3,
-    )
-    predictor = _predictor(method, cfg.filter.window, g_ranges)
-    window = predictor.window if predictor is not None else 1
-
-    # --- initial attitude
-    yaw0 = np.deg2rad(ini.yaw_deg)
-    if ini.alignment == "static":
-        span = slice(0, max(i_start, 1) + 1)
-        ok = ~invalid[span]
-        if not np.any(ok):
-            raise ValueError("no valid array sample in the static alignment period")
-        f_mean = sa[span][ok].mean(axis=0)
-        if se is not None:
-            phi = np.zeros(12)
-            for _ in range(3):
-                phi[3:6] = f_mean[3:6] - (se @ phi)[3:6]
-            f_b = phi[3:6]
-        else:
-            f_b = f_mean[3:6]
-        roll0, pitch0 = _static_tilt(f_b)
-        # at rest the angular-acceleration and rate-product means are their biases
-        static_mean = f_mean - (se @ phi if se is not None else 0.0)
-        n_avg = int(np.count_nonzero(ok))
-        tilt_noise = np.sqrt(noise.feature_cov[3, 3] / n_avg) / G0_MPS2
-        att_sigma = np.array([tilt_noise, tilt_noise, np.deg2rad(ini.heading_sigma_deg)])
-    else:
-        roll0, pitch0 = np.deg2rad(ini.roll_deg), np.deg2rad(ini.pitch_deg)
-        ts = np.deg2rad(ini.tilt_sigma_deg)
-        att_sigma = np.array([ts, ts, np.deg2rad(ini.heading_sigma_deg)])
-    heading_pending = ini.heading_source == "gps"
-    if heading_pending:
-        att_sigma[2] = np.deg2rad(30.0)
-    q0 = quat_from_euler(roll0, pitch0, yaw0)
-    c0 = dcm_from_quat(q0)
-    nf.initialise(
-        t[i_start],
-        fix_ned[first] - c0 @ cfg.antenna_b_m,
-        fixes.vel_ned_mps[first],
-        q0,
-        np.zeros(3),
-        fix_sig[first],
-        fixes.vel_acc_mps[first],
-        att_sigma,
-        np.deg2rad(ini.rate_sigma_dps),
-    )
-    if ini.alignment == "static":
-        # the levelled attitude absorbs the horizontal force bias: correlate them exactly
-        jm = np.zeros((2, 3))
-        jm[0, 1] = 1.0 / G0_MPS2
-        jm[1, 0] = -1.0 / G0_MPS2
-        j = np.zeros((2, nf.layout.n))
-        j[:, B_F] = jm @ c0
-        p = nf.P
-        p[6:8, :] = j @ p
-        p[:, 6:8] = p[6:8, :].T
-        p[6:8, 6:8] = j @ nf.P @ j.T + np.eye(2) * tilt_noise**2
-        p[6:8, 8] = 0.0
-        p[8, 6:8] = 0.0
-        nf.P = p
-        nf.update_static_biases(static_mean, n_avg)
-        nf.check_covariance("static alignment")
-
-    # --- bound: the same covariance recursion, linearised at the truth
-    if truth is not None:
-        if truth.t_s.shape != t.shape or not np.allclose(truth.t_s, t):
-            raise ValueError("truth must be sampled at the array's sample times")
-    p_bound = None
-    if bound:
-        if truth is None:
-            raise ValueError("the bound needs the truth")
-        p_bound = nf.P.copy()
-        w_true = truth.omega_b_rps
-        c_true = dcm_from_quat(truth.q_nb)
-
-    # --- block boundaries: every K samples and at every fix
-    k_reg = max(1, round(1.0 / (cfg.filter.rate_hz * dt)))
-    ends = set(range(i_start + k_reg, n_t, k_reg))
-    use_fix = np.zeros(len(fixes), dtype=bool)
-    use_fix[cand] = True
-    use_fix[first] = False
-    ends.update(int(i) for i in fix_idx[use_fix] if i > i_start)
-    ends.add(n_t - 1)
-    ends_arr = np.array(sorted(e for e in ends if e > i_start))
-    fixes_at: dict[int, list[int]] = {}
-    for m in np.flatnonzero(use_fix):
-        fixes_at.setdefault(int(fix_idx[m]), []).append(int(m))
-
-    n_e = ends_arr.shape[0] + 1
-    k_feat = cols.shape[0]
-    est_t = np.empty(n_e)
-    est_p = np.empty((n_e, 3))
-    est_v = np.empty((n_e, 3))
-    est_q = np.empty((n_e, 4))
-    est_w = np.empty((n_e, 3))
-    est_b = np.empty((n_e, k_feat))
-    est_cov = np.empty((n_e, 12, 12))
-    est_bound = np.empty((n_e, 12, 12)) if p_bound is not None else None
-
-    def record(e: int) -> None:
-        est_t[e] = nf.t_s
-        est_p[e], est_v[e], est_q[e], est_w[e] = nf.pos, nf.vel, nf.q, nf.w
-        est_b[e] = nf.bias
-        est_cov[e] = nf.P[:12, :12]
-        if est_bound is not None:
-            est_bound[e] = p_bound[:12, :12]
-
-    record(0)
-    seed_block = sa[max(0, i_start - k_reg) : i_start + 1]
-    seed_ok = ~invalid[max(0, i_start - k_reg) : i_start + 1]
-    seed_mean = seed_block[seed_ok].mean(axis=0) if np.any(seed_ok) else np.zeros(k_feat)
-    hist = np.empty((n_e + window, 9))
-    # the forecast history holds motion: block means less the current bias estimates
-    hist[:window] = np.concatenate([nf.w, seed_mean[0:6] - nf.bias[0:6]])
-    last_mean = seed_mean.copy()
-    first_row = sa[i_start] if not invalid[i_start] else seed_mean
-    if se is not None:
-        h0 = hist[0]
-        first_row = first_row - se @ np.concatenate([h0[3:6], h0[6:9], rate_quadratics(h0[0:3])])
-    nf.set_last_sample(first_row[0:3], first_row[3:6])
-    inn_t, inn_p, inn_v, inn_pa, inn_va = [], [], [], [], []
-    rate_nis = []
-    n_fallbacks = 0
-    with_dr = nf.layout.n_dr > 0
-    slip_sigma = np.deg2rad(cfg.filter.sideslip_sigma_deg)
-    gap_reset_s = cfg.filter.gps_gap_reset_s
-    t_last_slip = -np.inf
-    wd_smooth = np.zeros(3)
-    smooth_gain = min(1.0, 1.0 / (WDOT_SMOOTHING_S * cfg.filter.rate_hz))
-    phi_hat = np.zeros(12) if predictor is not None else None
-    full_check_every = max(1, round(cfg.filter.rate_hz))  # the Cholesky check once a second
-    i0 = i_start
-    for e, i1 in enumerate(ends_arr, start=1):
-        xs = sa[i0 + 1 : i1 + 1].copy()
-        bad = invalid[i0 + 1 : i1 + 1]
-        kk = xs.shape[0]
-        if predictor is not None:
-            x_hat, nfb = predictor.forecast(hist[e - 1 : e - 1 + window], e - 1)
-            n_fallbacks += nfb
-            wx, wy, wz = x_hat[0:3].tolist()
-            phi_hat[0:6] = x_hat[3:9]
-            phi_hat[6:] = (wx * wx, wy * wy, wz * wz, wy * wz, wx * wz, wx * wy)
-            xs -= se @ phi_hat
-        if np.any(bad):
-            fill = last_mean if phi_hat is None else phi_hat[cols] + nf.bias
-            xs[bad] = fill
-        n_ok = kk - int(np.count_nonzero(bad))
-        sg = sg_true = None
-        if with_dr:
-            # The sensor-position states see the block's angular acceleration as
-            # forecast from the *previous* blocks (the compensation's forecast, or a
-            # smoothed history without one): this block's own noise would correlate
-            # the Jacobian with the rate measurement's noise and drag dr.
-            wd_sg = wd_smooth if phi_hat is None else phi_hat[0:3]
-            sg = nf.geometry_jacobian(wd_sg, nf.w + 0.5 * kk * dt * wd_sg)
-            if p_bound is not None:
-                blk = slice(i0 + 1, i1 + 1)
-                sg_true = nf.geometry_jacobian(
-                    truth.omega_dot_b_rps2[blk].mean(axis=0), w_true[blk].mean(axis=0)
-                )
-        w_blk = nf.propagate(xs[:, 0:3], xs[:, 3:6], dt, sg)
-        if p_bound is not None:
-            f_n_true = np.mean(
-                np.einsum("kij,kj->ki", c_true[i0 + 1 : i1 + 1], truth.f_b_mps2[i0 + 1 : i1 + 1]),
-                axis=0,
-            )
-            fb, qb = nf.propagation_matrices(kk, dt, c_true[i0], f_n_true, sg_true)
-            _, p_bound = kf_predict(np.zeros(nf.layout.n), p_bound, fb, qb)
-        if n_ok and nq:
-            quad = xs[:, 6:] if n_ok == kk else xs[~bad, 6:]
-            nis = nf.update_rate(quad.sum(axis=0) * (1.0 / n_ok), w_blk, n_ok, sg)
-            rate_nis.append(np.nan if nis is None else nis)
-            if p_bound is not None and nis is not None and nis <= nf.gate_q:
-                _, hb = nf.rate_model(w_true[i0 + 1 : i1 + 1], sg_true)
-                _, p_bound = kf_update(
-                    np.zeros(nf.layout.n),
-                    p_bound,
-                    np.zeros(nq),
-                    noise.feature_cov[6:, 6:] / n_ok,
-                    hb,
-                )
-        good = xs[~bad] if 0 < n_ok < kk else xs
-        last_mean = good.sum(axis=0) * (1.0 / good.shape[0])
-        hist[e - 1 + window] = np.concatenate([nf.w, last_mean[0:6] - nf.bias[0:6]])
-        wd_smooth += smooth_gain * (last_mean[0:3] - nf.bias[0:3] - wd_smooth)
-        for m in fixes_at.get(int(i1), []):
-            if not use_gps:
-                continue
-            gap = gap_reset_s > 0 and nf.t_s - nf.t_last_position_fix > gap_reset_s
-            res = nf.update_gps(
-                fix_ned[m],
-                fixes.vel_ned_mps[m],
-                fix_sig[m],
-                fixes.vel_acc_mps[m],
-                fixes.t_s[m] - nf.t_s,
-                reset=gap,
-            )
-            inn_t.append(fixes.t_s[m])
-            inn_p.append(res.nis_pos)
-            inn_v.append(res.nis_vel)
-            inn_pa.append(res.pos_accepted)
-            inn_va.append(res.vel_accepted)
-            if p_bound is not None:
-                _, _, hp, hv = nf.gps_model(truth.q_nb[i1], w_true[i1])
-                if res.pos_accepted:
-                    _, p_bound = kf_update(
-                        np.zeros(nf.layout.n), p_bound, np.zeros(3), np.diag(fix_sig[m] ** 2), hp
-                    )
-                if res.vel_accepted:
-                    _, p_bound = kf_update(
-                        np.zeros(nf.layout.n),
-                        p_bound,
-                        np.zeros(3),
-                        np.eye(3) * fixes.vel_acc_mps[m] ** 2,
-                        hv,
-                    )
-            if nf.consecutive_position_rejects >= RESET_AFTER_REJECTS:
-                nf.reset_to_fix(fix_ned[m], fixes.vel_ned_mps[m], fix_sig[m], fixes.vel_acc_mps[m])
-            if heading_pending:
-                vh = fixes.vel_ned_mps[m][:2]
-                speed = float(np.hypot(*vh))
-                if speed > COURSE_MIN_SPEED_MPS:
-                    course_sigma = float(np.arctan2(3 * fixes.vel_acc_mps[m], speed))
-                    nf.set_heading(float(np.arctan2(vh[1], vh[0])), course_sigma)
-                    heading_pending = False
-        if slip_sigma > 0 and use_gps and nf.t_s - t_last_slip >= 1.0 / SIDESLIP_RATE_HZ - dt / 2:
-            # the vehicle model holds with or without fixes (outages included)
-            t_last_slip = nf.t_s
-            nis_s = nf.update_sideslip(slip_sigma, COURSE_MIN_SPEED_MPS)
-            if p_bound is not None and nis_s is not None and nis_s <= nf.gate1:
-                v_true = truth.vel_ned_mps[i1]
-                _, hs = nf.sideslip_model(truth.q_nb[i1], v_true)
-                r_s = (np.hypot(v_true[0], v_true[1]) * np.tan(slip_sigma)) ** 2
-                _, p_bound = kf_update(
-                    np.zeros(nf.layout.n), p_bound, np.zeros(1), np.array([[r_s]]), hs
-                )
-        nf.check_covariance("block", full=int(i1) in fixes_at or e % full_check_every == 0)
-        record(e)
-        i0 = i1
-        if progress is not None and e % 2000 == 0:
-            progress(e / len(ends_arr))
-    counts.update(
-        {
-            "blocks": nf.counters.blocks,
-            "samples used": nf.counters.samples,
-            "samples before the filter start": i_start,
-            "gps fixes used": nf.counters.gps_used,
-            "gps positions rejected (gate)": nf.counters.gps_rejected_pos,
-            "gps velocities rejected (gate)": nf.counters.gps_rejected_vel,
-            "gps resets after rejections": nf.counters.gps_resets,
-            "gps resets after an outage": nf.counters.gps_gap_resets,
-            "rate updates": nf.counters.rate_updates,
-            "rate updates rejected (gate)": nf.counters.rate_rejected,
-            "sideslip updates": nf.counters.sideslip_used,
-            "sideslip updates rejected (gate)": nf.counters.sideslip_rejected,
-            "grey forecasts fallen back": n_fallbacks,
-        }
-    )
-    estimates = Estimates(est_t, est_p, est_v, est_q, est_w, est_b, est_cov, est_bound)
-    innovations = GpsInnovations(
-        np.array(inn_t),
-        np.array(inn_p),
-        np.array(inn_v),
-        np.array(inn_pa, dtype=bool),
-        np.array(inn_va, dtype=bool),
-    )
-    return RunResult(estimates, innovations, np.array(rate_nis), counts, method, nq, nf.layout.n)
+    step = max(1, n_t // 50)
+    for m, j in zip(order.tolist(), after.tolist(), strict=True):
+        while i < j:
+            k = min(j, i + step)
+            pipe.push_samples(t[i:k], samples.accel_mps2[i:k])
+            i = k
+            if progress is not None:
+                progress(i / n_t)
+        pipe.push_fix(
+            fixes.t_s[m],
+            fixes.lat_deg[m],
+            fixes.lon_deg[m],
+            fixes.alt_m[m],
+            fixes.vel_ned_mps[m],
+            fixes.h_acc_m[m],
+            fixes.v_acc_m[m],
+            fixes.vel_acc_mps[m],
+        )
+    while i < n_t:
+        k = min(n_t, i + step)
+        pipe.push_samples(t[i:k], samples.accel_mps2[i:k])
+        i = k
+        if progress is not None:
+            progress(i / n_t)
+    pipe.finish()
+    return pipe.result()
 
 
 def geodetic_estimates(est: Estimates, cfg: RunConfig) -> tuple[np.ndarray, ...]:

@@ -231,15 +231,30 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from ngnav.simulate import simulate_flight
     from telemetry.runfiles import truth_path, write_run
 
+    if args.out is None and args.stream is None:
+        raise ValueError("say where the run goes: --out DIR|NAME.tlog and/or --stream udpout:...")
     scn = _flight(args)
     sim = simulate_flight(scn, args.run_index)
-    out = write_run(args.out, sim.samples, sim.fixes, sim.config)
-    write_truth_csv(truth_path(out), sim.truth)
+    where = []
+    if args.out is not None:
+        out = write_run(args.out, sim.samples, sim.fixes, sim.config)
+        write_truth_csv(truth_path(out), sim.truth)
+        where.append(str(out))
     print(
         f"simulated {scn.name} run {args.run_index}: {sim.samples.t_s.shape[0]} array samples "
         f"({sim.samples.n_channels} channels), {len(sim.fixes)} GPS fixes, "
-        f"{int(sim.saturated.any(axis=1).sum())} saturated samples -> {out}"
+        f"{int(sim.saturated.any(axis=1).sum())} saturated samples -> {', '.join(where) or '-'}",
+        flush=True,
     )
+    if args.stream is not None:
+        from telemetry.inputs import input_frames
+        from telemetry.live import parse_endpoint, play_frames
+        from telemetry.tlog import FrameWriter, frames_of
+
+        dest = parse_endpoint(args.stream, "udpout")
+        frames = frames_of(input_frames(sim.samples, sim.fixes, sim.config), FrameWriter())
+        n = play_frames(frames, dest, args.speed)
+        print(f"streamed {n} datagrams to {dest} at speed {args.speed:g}")
     return 0
 
 
@@ -256,23 +271,39 @@ def cmd_run(args: argparse.Namespace) -> int:
     from filters.output import write_estimates_csv
     from filters.pipeline import run_filter
     from ngnav.runio import read_truth_csv
+    from telemetry.commands import run_to_tlog
+    from telemetry.replay import replay_tlog
     from telemetry.runfiles import is_tlog, read_run, truth_path
 
     src = Path(args.run)
-    inp = read_run(src)
-    cfg = inp.config
-    res = run_filter(
-        inp.samples, inp.fixes, cfg, compensation=args.compensation, use_gps=not args.no_gps
-    )
     if args.out:
         out = Path(args.out)
     else:
         out = src.with_suffix(".estimates.csv") if is_tlog(src) else src / "estimates.csv"
+    if args.no_gps and (is_tlog(src) or is_tlog(out)):
+        raise ValueError("--no-gps is for CSV runs; a tlog replay uses every input it holds")
     if is_tlog(out):
-        raise ValueError(f"{out}: estimates as a tlog are not written yet; use a .csv name")
-    write_estimates_csv(out, res.estimates, cfg)
-    print(f"run {src}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
-    _print_reports(inp.reports)
+        # estimates as MAVLink: through the stream path, as a live link would run
+        rr, reports = run_to_tlog(src, out, args)
+        res, cfg = rr.result, rr.config
+        frames = sum(rr.frames_sent.values())
+        print(f"run {src}: {res.estimates.t_s.shape[0]} estimates, {frames} frames -> {out}")
+    elif is_tlog(src):
+        rr = replay_tlog(src, compensation=args.compensation)
+        if rr.result is None:
+            raise ValueError(f"{src}: the filter did not run: {rr.failure}")
+        res, cfg, reports = rr.result, rr.config, {str(src): rr.counts}
+        write_estimates_csv(out, res.estimates, cfg)
+        print(f"run {src}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
+    else:
+        inp = read_run(src)
+        cfg, reports = inp.config, inp.reports
+        res = run_filter(
+            inp.samples, inp.fixes, cfg, compensation=args.compensation, use_gps=not args.no_gps
+        )
+        write_estimates_csv(out, res.estimates, cfg)
+        print(f"run {src}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
+    _print_reports(reports)
     _print_counts(res.counts)
     if truth_path(src).exists():
         s = summarise(run_errors(res.estimates, read_truth_csv(truth_path(src))))
@@ -377,6 +408,8 @@ def _add_flight_args(p: argparse.ArgumentParser, default: str = "uav-survey") ->
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from telemetry.commands import add_output_args, add_stream_parser
+
     parser = argparse.ArgumentParser(
         prog="ngnav", description="GPS-aided navigation with a gyro-free nine-accelerometer IMU."
     )
@@ -407,8 +440,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--run-index", type=int, default=0, help="Monte Carlo index i of default_rng([seed, i])"
     )
+    p.add_argument("--out", help="output directory, or a file NAME.tlog (MAVLink inputs)")
     p.add_argument(
-        "--out", required=True, help="output directory, or a file NAME.tlog (MAVLink inputs)"
+        "--stream",
+        metavar="udpout:HOST:PORT",
+        help="also play the inputs as MAVLink over UDP (see --speed)",
+    )
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        help="run seconds per wall second for --stream; 0 = unpaced (default: 1, real time)",
     )
     p.set_defaults(func=cmd_simulate)
 
@@ -422,13 +464,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("run", help="directory with config.toml, array.csv, gps.csv; or a .tlog")
     p.add_argument(
-        "--out", help="estimates CSV (default: RUN/estimates.csv, or NAME.estimates.csv)"
+        "--out",
+        help="estimates: NAME.csv, or NAME.tlog for MAVLink estimates "
+        "(default: RUN/estimates.csv, or NAME.estimates.csv)",
     )
     p.add_argument(
         "--compensation", choices=["gm11", "none", "line", "last"], help="override the config"
     )
     p.add_argument("--no-gps", action="store_true", help="array alone after initialisation")
+    add_output_args(p)
     p.set_defaults(func=cmd_run)
+
+    add_stream_parser(sub)
 
     p = sub.add_parser(
         "evaluate", help="errors of GM(1,1)/none/oracle/array-alone/GPS-alone on a simulated flight"

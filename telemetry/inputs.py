@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,7 +37,6 @@ import numpy as np
 from ngnav.gps import GpsFixes
 from ngnav.records import ArraySamples
 from ngnav.runconfig import RunConfig, read_run_config_text, run_config_text
-from ngnav.runio import fill_sample_gaps
 from telemetry import ngnav_mavlink as mavlink
 from telemetry.frames import FrameCounts
 
@@ -192,22 +191,109 @@ def input_frames(
     yield from gps[g:]
 
 
+class SampleGrid:
+    """Put array samples on their uniform time grid as they arrive.
+
+    The grid step is the first batch's ``dt_usec`` or, failing that, the
+    median interval of the first :attr:`SETTLE` samples (buffered until then).
+    A sample off the grid (by more than 1/1000 of a step) is dropped and
+    counted; a missing grid point becomes a held (NaN) row, counted.
+    """
+
+    SETTLE = 9
+
+    def __init__(self, counts: FrameCounts) -> None:
+        self.counts = counts
+        self.dt_us: int | None = None
+        self.t0_us: int | None = None
+        self._k_last = -1
+        self._buf: list[tuple[int, np.ndarray]] = []
+
+    def hint(self, dt_us: int) -> None:
+        """A step the source declares (a batch's ``dt_usec``); used if none is set yet."""
+        if self.dt_us is None and dt_us > 0:
+            self.dt_us = int(dt_us)
+
+    def add(self, t_us: int, a: np.ndarray) -> None:
+        """Take one sample (strictly later than the last); :meth:`drain` releases it."""
+        self._buf.append((t_us, a))
+
+    def drain(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The grid rows now final: ``(t_us (K,), accel (K, N))``, or None."""
+        if self.dt_us is None:
+            if len(self._buf) < self.SETTLE:
+                return None
+            d = np.diff([t for t, _ in self._buf])
+            self.dt_us = max(1, int(np.median(d)))
+        return self._drain()
+
+    def flush(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Everything still buffered (at the end of the input)."""
+        if not self._buf:
+            return None
+        if self.dt_us is None:
+            if len(self._buf) < 2:
+                return None
+            self.dt_us = max(1, int(np.median(np.diff([t for t, _ in self._buf]))))
+        return self._drain()
+
+    def _drain(self) -> tuple[np.ndarray, np.ndarray] | None:
+        dt = self.dt_us
+        ts: list[int] = []
+        rows: list[np.ndarray] = []
+        for t_us, a in self._buf:
+            if self.t0_us is None:
+                self.t0_us = t_us
+            off = (t_us - self.t0_us) % dt
+            if min(off, dt - off) > max(1, dt // 1000):
+                self.counts.add("array sample off the grid")
+                continue
+            k = (t_us - self.t0_us + dt // 2) // dt
+            if k <= self._k_last:
+                self.counts.add("array sample off the grid")
+                continue
+            if k > self._k_last + 1 and self._k_last >= 0:
+                gap = k - self._k_last - 1
+                self.counts.add("missing samples filled", gap)
+                for j in range(self._k_last + 1, k):
+                    ts.append(self.t0_us + j * dt)
+                    rows.append(np.full(a.shape[0], np.nan))
+            ts.append(self.t0_us + k * dt)
+            rows.append(a)
+            self._k_last = k
+        self._buf = []
+        if not ts:
+            return None
+        return np.array(ts, dtype=np.int64), np.array(rows)
+
+
 @dataclass
 class InputAssembler:
-    """Collect decoded input messages into a run, counting what is dropped.
+    """Turn decoded input messages into samples, fixes and the configuration.
 
-    Call :meth:`add` for every message (any type; others are ignored), then
-    :meth:`samples`, :meth:`fixes` and :meth:`config`.
+    Call :meth:`add` for every message (any type; others are ignored). With
+    callbacks the results stream out as they become final: ``on_samples(t_us
+    (K,), accel (K, N))`` grid rows (gaps as NaN rows), ``on_fix(t_us, row)``
+    with ``row = (lat_deg, lon_deg, alt_m, vn, ve, vd, h_acc_m, v_acc_m,
+    vel_acc_mps)``, ``on_config(text)``. Without them they are collected:
+    call :meth:`finish`, then :meth:`samples`, :meth:`fixes` and :meth:`config`.
+    Everything dropped is counted in ``counts``.
     """
 
     n_channels: int | None = None
     gps_defaults: GpsDefaults = field(default_factory=GpsDefaults)
     counts: FrameCounts = field(default_factory=FrameCounts)
+    on_samples: Callable[[np.ndarray, np.ndarray], None] | None = None
+    on_fix: Callable[[int, tuple[float, ...]], None] | None = None
+    on_config: Callable[[str], None] | None = None
 
     def __post_init__(self) -> None:
-        self._t: list[int] = []
+        self._grid = SampleGrid(self.counts)
+        self._t: list[np.ndarray] = []
         self._a: list[np.ndarray] = []
         self._last_t = -1
+        self._rows_t: list[int] = []
+        self._rows_a: list[np.ndarray] = []
         self._gps: list[tuple] = []
         self._last_gps_t = -1
         self._chunks: dict[int, dict[int, bytes]] = {}
@@ -230,9 +316,15 @@ class InputAssembler:
         if bad.any():
             self.counts.add("non-finite field")
         a[~ok | bad] = np.nan
-        self._t.append(t_us)
-        self._a.append(a)
         self._last_t = t_us
+        self._grid.add(t_us, a)
+
+    def _emit_samples(self, t_us: np.ndarray, a: np.ndarray) -> None:
+        if self.on_samples is not None:
+            self.on_samples(t_us, a)
+        else:
+            self._t.append(t_us)
+            self._a.append(a)
 
     def _check_count(self, count: int) -> bool:
         if self.n_channels is None:
@@ -261,13 +353,21 @@ class InputAssembler:
                 self.counts.add("bad batch size")
                 return
             c = msg.count
+            if msg.n > 1:
+                self._grid.hint(msg.dt_usec)
             for j in range(msg.n):
                 self._add_sample(
                     msg.time_usec + j * msg.dt_usec, msg.accel[j * c : (j + 1) * c], msg.valid[j]
                 )
+            got = self._grid.drain()
+            if got is not None:
+                self._emit_samples(*got)
         elif name == "NGNAV_ARRAY_SAMPLE":
             if self._check_count(msg.count):
                 self._add_sample(msg.time_usec, msg.accel[: msg.count], msg.valid)
+                got = self._grid.drain()
+                if got is not None:
+                    self._emit_samples(*got)
         elif name == "GPS_INPUT":
             self._add_gps_input(msg)
         elif name == "GPS_RAW_INT":
@@ -292,7 +392,10 @@ class InputAssembler:
             self.counts.add(kind)
             return
         self._last_gps_t = t_us
-        self._gps.append((t_us, *row))
+        if self.on_fix is not None:
+            self.on_fix(t_us, row)
+        else:
+            self._gps.append((t_us, *row))
 
     def _add_gps_input(self, msg) -> None:
         if msg.fix_type < 3:
@@ -369,6 +472,8 @@ class InputAssembler:
                 del self._chunks[cid]
                 return
             self._config_text = text.decode("utf-8", errors="replace")
+            if self.on_config is not None:
+                self.on_config(self._config_text)
 
     # ----------------------------------------------------------- results
     def config(self, where: str = "tlog") -> RunConfig:
@@ -377,27 +482,19 @@ class InputAssembler:
             raise ValueError(f"{where}: no complete NGNAV_CONFIG_TEXT configuration in the stream")
         return read_run_config_text(self._config_text, where)
 
+    def finish(self) -> None:
+        """End of input: release the samples the grid still holds."""
+        got = self._grid.flush()
+        if got is not None:
+            self._emit_samples(*got)
+
     def samples(self) -> ArraySamples:
-        """The array samples on a uniform grid; gaps are filled with held (NaN) rows, counted."""
-        if len(self._t) < 2:
-            raise ValueError(
-                f"the stream holds {len(self._t)} array samples; at least 2 are needed"
-            )
-        t = np.array(self._t, dtype=np.int64)
-        a = np.array(self._a)
-        d = np.diff(t)
-        dt = int(np.median(d))
-        off = (t - t[0]) % dt
-        on_grid = (off == 0) | (off == dt)  # allow 1 us rounding either way
-        on_grid |= np.minimum(off, dt - off) <= max(1, dt // 1000)
-        self.counts.add("array sample off the grid", int(np.count_nonzero(~on_grid)))
-        t, a = t[on_grid], a[on_grid]
-        k = np.rint((t - t[0]) / dt).astype(np.int64)
-        keep = np.concatenate([[True], np.diff(k) > 0])
-        t, a, k = t[keep], a[keep], k[keep]
-        t_us, full, filled = fill_sample_gaps(float(t[0]), float(dt), k, a)
-        self.counts.add("missing samples filled", filled)
-        return ArraySamples(t_us * 1e-6, full)
+        """The collected array samples on their uniform grid (flushes the grid first)."""
+        self.finish()
+        n = sum(t.shape[0] for t in self._t)
+        if n < 2:
+            raise ValueError(f"the stream holds {n} array samples; at least 2 are needed")
+        return ArraySamples(np.concatenate(self._t) * 1e-6, np.concatenate(self._a))
 
     def fixes(self) -> GpsFixes:
         """The accepted GPS fixes, in time order."""

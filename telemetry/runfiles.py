@@ -50,6 +50,7 @@ def read_run(path: str | Path) -> RunInputs:
         asm = InputAssembler(counts=dec.counts)
         for _, msg in read_tlog(p, dec):
             asm.add(msg)
+        asm.finish()
         cfg = asm.config(str(p))
         if asm.n_channels is not None and asm.n_channels != cfg.layout.n_sensors:
             raise ValueError(

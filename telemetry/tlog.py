@@ -41,18 +41,30 @@ class FrameWriter:
         return bytes(buf)
 
 
+def tlog_record(t_us: int, frame: bytes) -> bytes:
+    """One tlog record: the run-clock time on :data:`EPOCH_BASE_US`, then the frame."""
+    return _TS.pack(EPOCH_BASE_US + int(t_us)) + frame
+
+
+def frames_of(
+    messages: Iterable[tuple[int, mavlink.MAVLink_message]], writer: FrameWriter | None = None
+) -> Iterator[tuple[int, bytes]]:
+    """Pack ``(run-clock time_usec, message)`` pairs into ``(time_usec, frame)`` pairs."""
+    w = writer or FrameWriter()
+    for t_us, msg in messages:
+        yield int(t_us), w.pack(msg)
+
+
 def write_tlog(
     path: str | Path,
     messages: Iterable[tuple[int, mavlink.MAVLink_message]],
     writer: FrameWriter | None = None,
 ) -> int:
     """Write ``(run-clock time_usec, message)`` pairs as a tlog; returns the frame count."""
-    w = writer or FrameWriter()
     n = 0
     with Path(path).open("wb") as fh:
-        for t_us, msg in messages:
-            fh.write(_TS.pack(EPOCH_BASE_US + int(t_us)))
-            fh.write(w.pack(msg))
+        for t_us, frame in frames_of(messages, writer):
+            fh.write(tlog_record(t_us, frame))
             n += 1
     return n
 

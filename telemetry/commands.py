@@ -1,0 +1,185 @@
+"""The telemetry side of the ``ngnav`` command line: output options, ``stream``, replays.
+
+``ngnav.cli`` registers these; they are here so that the CLI module does not
+grow into a god-module and the MAVLink wiring stays beside the telemetry code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from telemetry import ngnav_mavlink as mavlink
+from telemetry.outputs import DEFAULT_RATES_HZ, OutputSettings, parse_rates
+
+
+def _enum_value(enum: str, text: str) -> int:
+    """An enum entry by number or name (``1``, ``MAV_TYPE_FIXED_WING`` or ``FIXED_WING``)."""
+    entries = mavlink.enums[enum]
+    try:
+        v = int(text)
+    except ValueError:
+        name = text.upper()
+        if not name.startswith(enum + "_"):
+            name = f"{enum}_{name}"
+        for k, e in entries.items():
+            if e.name == name:
+                return int(k)
+        raise ValueError(f"unknown {enum} {text!r}") from None
+    if v not in entries:
+        raise ValueError(f"unknown {enum} {v}")
+    return v
+
+
+def add_output_args(p: argparse.ArgumentParser) -> None:
+    """Options that say who the estimates come from and how often each stream goes."""
+    g = p.add_argument_group("MAVLink output")
+    g.add_argument("--sysid", type=int, default=1, help="system id, 1-254 (default: 1)")
+    g.add_argument("--compid", type=int, default=1, help="component id (default: 1)")
+    g.add_argument(
+        "--vehicle-type", default="FIXED_WING", help="MAV_TYPE name or number (default: FIXED_WING)"
+    )
+    g.add_argument(
+        "--autopilot", default="GENERIC", help="MAV_AUTOPILOT name or number (default: GENERIC)"
+    )
+    g.add_argument(
+        "--rate",
+        action="append",
+        default=[],
+        metavar="STREAM=HZ",
+        help="output rate, repeatable; streams and defaults: "
+        + ", ".join(f"{k}={v:g}" for k, v in DEFAULT_RATES_HZ.items()),
+    )
+
+
+def output_settings(args: argparse.Namespace) -> OutputSettings:
+    """The :class:`OutputSettings` of parsed :func:`add_output_args` options."""
+    return OutputSettings(
+        system_id=args.sysid,
+        component_id=args.compid,
+        vehicle_type=_enum_value("MAV_TYPE", args.vehicle_type),
+        autopilot=_enum_value("MAV_AUTOPILOT", args.autopilot),
+        rates_hz=parse_rates(args.rate),
+    )
+
+
+def parse_allow(items: list[str]) -> set[tuple[int, int]] | None:
+    """``["1:1", "2:200"]`` to ``{(1, 1), (2, 200)}``; empty means every source."""
+    if not items:
+        return None
+    out = set()
+    for item in items:
+        a, sep, b = item.partition(":")
+        try:
+            if not sep:
+                raise ValueError
+            out.add((int(a), int(b)))
+        except ValueError:
+            raise ValueError(f"--allow {item!r} is not SYSID:COMPID") from None
+    return out
+
+
+def print_counts(title: str, counts: dict[str, int], indent: str = "  ") -> None:
+    """A counter block of the run summary."""
+    print(f"{indent}{title}:")
+    for k, v in counts.items():
+        print(f"{indent}  {k}: {v}")
+
+
+def cmd_stream(args: argparse.Namespace) -> int:
+    """``ngnav stream``: estimate from a live UDP link, send MAVLink estimates."""
+    from filters.output import write_estimates_csv
+    from telemetry.live import parse_endpoint, serve
+
+    src = parse_endpoint(args.inp, "udpin")
+    dst = parse_endpoint(args.out, "udpout")
+    settings = output_settings(args)
+
+    def ready() -> None:
+        print(f"ngnav stream: {src} -> {dst} (system {settings.system_id})", flush=True)
+
+    st = serve(
+        src,
+        dst,
+        settings,
+        allow=parse_allow(args.allow),
+        duration_s=args.duration,
+        idle_exit_s=args.idle_exit,
+        keep_estimates=args.csv is not None,
+        out_tlog=args.tlog,
+        ready=ready,
+    )
+    p50, p99, pmax = st.latency_percentiles()
+    if args.csv is not None and st.result is not None:
+        write_estimates_csv(args.csv, st.result.estimates, st.config)
+    summary = {
+        "datagrams": st.datagrams,
+        "estimate epochs": 0 if st.result is None else int(st.result.estimates.t_s.shape[0]),
+        "frames sent": st.frames_sent,
+        "latency p50 ms": p50 * 1e3,
+        "latency p99 ms": p99 * 1e3,
+        "latency max ms": pmax * 1e3,
+        "input": st.counts,
+        "filter": {} if st.result is None else st.result.counts,
+        "failure": st.failure,
+    }
+    if args.json:
+        print(json.dumps(summary, indent=1))
+    else:
+        print(
+            f"  {st.datagrams} datagrams in, {sum(st.frames_sent.values())} frames out; "
+            f"latency input -> estimate p50 {p50 * 1e3:.3f} ms, p99 {p99 * 1e3:.3f} ms, "
+            f"max {pmax * 1e3:.3f} ms"
+        )
+        print_counts("input", st.counts)
+        print_counts("frames sent", st.frames_sent)
+        if st.result is not None:
+            print_counts("filter", st.result.counts)
+        if st.failure:
+            print(f"  filter stopped: {st.failure}")
+    return 0
+
+
+def run_to_tlog(src: Path, out: Path, args: argparse.Namespace):
+    """``ngnav run SRC --out OUT.tlog``: replay through the stream path."""
+    from telemetry.replay import replay_inputs, replay_tlog
+    from telemetry.runfiles import is_tlog, read_run
+
+    settings = output_settings(args)
+    if is_tlog(src):
+        rr = replay_tlog(src, settings, out_tlog=out, compensation=args.compensation)
+        reports = {str(src): rr.counts}
+    else:
+        inp = read_run(src)
+        rr = replay_inputs(inp, settings, out_tlog=out, compensation=args.compensation)
+        reports = dict(inp.reports)
+        reports["MAVLink"] = rr.counts
+    if rr.failure:
+        raise ValueError(f"{src}: the filter did not run through: {rr.failure}")
+    return rr, reports
+
+
+def add_stream_parser(sub) -> None:
+    """Register ``ngnav stream``."""
+    p = sub.add_parser(
+        "stream", help="estimate from a live MAVLink UDP link and send the estimates"
+    )
+    p.add_argument(
+        "--in", dest="inp", required=True, metavar="udpin:HOST:PORT", help="input link (bind)"
+    )
+    p.add_argument(
+        "--out", required=True, metavar="udpout:HOST:PORT", help="where estimates are sent"
+    )
+    p.add_argument("--duration", type=float, help="stop after this many wall seconds")
+    p.add_argument(
+        "--idle-exit", type=float, help="stop after this many silent seconds once input came"
+    )
+    p.add_argument(
+        "--allow", action="append", default=[], metavar="SYSID:COMPID", help="accepted sources"
+    )
+    p.add_argument("--csv", help="also write every estimate as estimates.csv at the end")
+    p.add_argument("--tlog", help="also log the estimate frames sent as a tlog")
+    p.add_argument("--json", action="store_true", help="summary as JSON")
+    add_output_args(p)
+    p.set_defaults(func=cmd_stream)

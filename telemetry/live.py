@@ -1,0 +1,255 @@
+"""Live MAVLink over UDP: play a run's inputs onto a link, and estimate from a link.
+
+Endpoints are written as pymavlink writes them: ``udpin:HOST:PORT`` binds and
+receives, ``udpout:HOST:PORT`` sends to that address.
+
+- :func:`play_frames` sends input frames at their run-clock times, in real
+  time (``speed=1``), faster (``speed=N``) or as fast as the socket takes
+  them (``speed=0``); frames due at the same time share a datagram of at most
+  :data:`MAX_DATAGRAM` bytes.
+- :func:`serve` reads datagrams from ``udpin``, decodes each on its own
+  (:meth:`telemetry.session.StreamSession.feed_datagram`), and sends every
+  estimate frame to ``udpout`` as soon as it exists. A HEARTBEAT goes out every
+  second of wall time with no other heartbeat (a silent input link included),
+  with ``MAV_STATE_STANDBY`` before the filter starts. It stops on
+  ``duration_s``, on ``idle_exit_s`` of silence after the first datagram, or
+  on SIGINT/SIGTERM, then flushes the filter.
+"""
+
+from __future__ import annotations
+
+import signal
+import socket
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from filters.pipeline import RunResult
+from ngnav.runconfig import RunConfig
+from telemetry.outputs import OutputSettings
+from telemetry.session import OutputFrame, StreamSession
+from telemetry.tlog import tlog_record
+
+#: Largest datagram :func:`play_frames` builds from frames due together, bytes.
+MAX_DATAGRAM = 1400
+#: Socket buffer asked for on both ends (the kernel may cap it), bytes.
+SOCKET_BUFFER = 8 * 1024 * 1024
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """A UDP endpoint: ``mode`` is ``"udpin"`` (bind) or ``"udpout"`` (send to)."""
+
+    mode: str
+    host: str
+    port: int
+
+    def __str__(self) -> str:
+        return f"{self.mode}:{self.host}:{self.port}"
+
+
+def parse_endpoint(text: str, mode: str) -> Endpoint:
+    """Parse ``udpin:HOST:PORT`` / ``udpout:HOST:PORT``; ``mode`` is the one required."""
+    parts = text.split(":")
+    if len(parts) != 3 or parts[0] not in ("udpin", "udpout"):
+        raise ValueError(f"endpoint {text!r} is not udpin:HOST:PORT or udpout:HOST:PORT")
+    if parts[0] != mode:
+        raise ValueError(f"endpoint {text!r}: expected {mode}:HOST:PORT here")
+    try:
+        port = int(parts[2])
+    except ValueError:
+        raise ValueError(f"endpoint {text!r}: port {parts[2]!r} is not a number") from None
+    if not 0 < port < 65536:
+        raise ValueError(f"endpoint {text!r}: port {port} out of range")
+    return Endpoint(parts[0], parts[1], port)
+
+
+def _socket() -> socket.socket:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    for opt in (socket.SO_RCVBUF, socket.SO_SNDBUF):
+        try:
+            s.setsockopt(socket.SOL_SOCKET, opt, SOCKET_BUFFER)
+        except OSError:
+            pass
+    return s
+
+
+def _datagrams(frames: Iterable[tuple[int, bytes]]):
+    """Group consecutive frames with one send time into datagrams (<= MAX_DATAGRAM)."""
+    t_cur, buf = None, b""
+    for t_us, frame in frames:
+        if buf and (t_us != t_cur or len(buf) + len(frame) > MAX_DATAGRAM):
+            yield t_cur, buf
+            buf = b""
+        t_cur = t_us
+        buf += frame
+    if buf:
+        yield t_cur, buf
+
+
+def play_frames(frames: Iterable[tuple[int, bytes]], dest: Endpoint, speed: float = 1.0) -> int:
+    """Send ``(run-clock time_usec, frame)`` pairs to ``dest``; returns datagrams sent.
+
+    ``speed`` is run seconds per wall second (0: no pacing).
+    """
+    if dest.mode != "udpout":
+        raise ValueError(f"play needs a udpout endpoint, got {dest}")
+    if speed < 0 or not np.isfinite(speed):
+        raise ValueError(f"speed must be >= 0, got {speed}")
+    sock = _socket()
+    addr = (dest.host, dest.port)
+    n = 0
+    t_first = None
+    wall0 = time.perf_counter()
+    try:
+        for t_us, data in _datagrams(frames):
+            if t_first is None:
+                t_first = t_us
+            if speed > 0:
+                due = wall0 + (t_us - t_first) * 1e-6 / speed
+                wait = due - time.perf_counter()
+                if wait > 0:
+                    time.sleep(wait)
+            sock.sendto(data, addr)
+            n += 1
+    finally:
+        sock.close()
+    return n
+
+
+@dataclass
+class ServeStats:
+    """What :func:`serve` did: counts, frames sent per message, latencies."""
+
+    counts: dict[str, int]
+    frames_sent: dict[str, int]
+    datagrams: int
+    latency_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    result: RunResult | None = None
+    failure: str | None = None
+    config: RunConfig | None = None
+
+    def latency_percentiles(self) -> tuple[float, float, float]:
+        """p50, p99 and max of the input-to-estimate latency, s (NaN with no samples)."""
+        if self.latency_s.size == 0:
+            return float("nan"), float("nan"), float("nan")
+        p50, p99 = np.percentile(self.latency_s, [50, 99])
+        return float(p50), float(p99), float(self.latency_s.max())
+
+
+def serve(
+    source: Endpoint,
+    dest: Endpoint,
+    settings: OutputSettings | None = None,
+    *,
+    allow: set[tuple[int, int]] | None = None,
+    duration_s: float | None = None,
+    idle_exit_s: float | None = None,
+    keep_estimates: bool = False,
+    out_tlog: str | Path | None = None,
+    ready=None,
+) -> ServeStats:
+    """Estimate from a live input link and send the estimates (see the module docstring).
+
+    ``latency_s`` holds, for every datagram that produced estimate frames,
+    the wall time from its arrival (``recvfrom`` returning) to its last
+    estimate frame leaving ``sendto``. ``ready`` is called once the input
+    socket is bound (tests use it to start the sender).
+    """
+    if source.mode != "udpin" or dest.mode != "udpout":
+        raise ValueError(
+            f"stream needs --in udpin:HOST:PORT and --out udpout:HOST:PORT, got {source} {dest}"
+        )
+    session = StreamSession(
+        settings,
+        allow=allow,
+        wall_clock=lambda: time.time_ns() // 1000,
+        keep_estimates=keep_estimates,
+    )
+    rx = _socket()
+    try:
+        rx.bind((source.host, source.port))
+    except OSError as exc:
+        rx.close()
+        raise ValueError(f"cannot bind {source}: {exc}") from None
+    rx.settimeout(0.2)
+    tx = _socket()
+    addr = (dest.host, dest.port)
+    sent: Counter[str] = Counter()
+    latencies: list[float] = []
+    fh = Path(out_tlog).open("wb") if out_tlog is not None else None
+    stop = {"flag": False}
+
+    def on_signal(signum, frame) -> None:
+        stop["flag"] = True
+
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    last_hb = -1.0
+    t_start = time.monotonic()
+    t_last_rx = None
+    n_dgrams = 0
+
+    def send(frames: list[OutputFrame]) -> None:
+        nonlocal last_hb
+        for f in frames:
+            try:
+                tx.sendto(f.frame, addr)
+            except OSError:
+                session.counts.add("estimate frames not sent (socket error)")
+                continue
+            sent[f.name] += 1
+            if f.name == "HEARTBEAT":
+                last_hb = time.monotonic()
+            if fh is not None:
+                fh.write(tlog_record(f.t_us, f.frame))
+
+    if ready is not None:
+        ready()
+    try:
+        while not stop["flag"]:
+            now = time.monotonic()
+            if duration_s is not None and now - t_start >= duration_s:
+                break
+            if idle_exit_s is not None and t_last_rx is not None and now - t_last_rx >= idle_exit_s:
+                break
+            if now - last_hb >= 1.0:
+                send([session.heartbeat()])
+            try:
+                data, _ = rx.recvfrom(65535)
+            except TimeoutError:
+                continue
+            except OSError:
+                continue
+            t_rx = time.perf_counter()
+            t_last_rx = time.monotonic()
+            n_dgrams += 1
+            session.feed_datagram(data)
+            frames = session.take()
+            if frames:
+                send(frames)
+                latencies.append(time.perf_counter() - t_rx)
+        result = session.finish()
+        send(session.take())
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        rx.close()
+        tx.close()
+        if fh is not None:
+            fh.close()
+    return ServeStats(
+        session.counts.as_dict(),
+        dict(sent),
+        n_dgrams,
+        np.array(latencies),
+        result,
+        session.failure,
+        session.config,
+    )

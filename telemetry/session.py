@@ -1,0 +1,215 @@
+"""One path from MAVLink input frames to MAVLink estimates: tlog replay and live link alike.
+
+A :class:`StreamSession` takes input frames (a tlog's frames, or UDP
+datagrams), decodes them one frame at a time (:mod:`telemetry.frames`),
+assembles samples, fixes and the configuration (:mod:`telemetry.inputs`),
+runs the filter as a stream (:class:`filters.pipeline.Pipeline`) and encodes
+the estimates (:mod:`telemetry.outputs`). ``ngnav run RUN.tlog`` and
+``ngnav stream`` both use it, so the same input gives the same estimates.
+
+Before the configuration (``NGNAV_CONFIG_TEXT``) is complete, samples and
+fixes are kept; the filter starts from them once it arrives. If the filter
+fails (its covariance check, or an alignment without valid samples) the
+session stops estimating, counts it, and reports ``MAV_STATE_CRITICAL``; the
+input side goes on counting.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from filters.ekf import CovarianceError
+from filters.pipeline import Pipeline, RunResult
+from ngnav.geodesy import LocalTangentPlane
+from ngnav.runconfig import RunConfig, read_run_config_text
+from telemetry import ngnav_mavlink as mavlink
+from telemetry.frames import FrameDecoder
+from telemetry.inputs import GpsDefaults, InputAssembler
+from telemetry.outputs import EstimateEncoder, OutputSettings
+from telemetry.tlog import FrameWriter
+
+
+@dataclass(frozen=True)
+class OutputFrame:
+    """One packed estimate frame and the run-clock time (us) of the epoch it belongs to."""
+
+    t_us: int
+    frame: bytes
+    name: str
+
+
+class StreamSession:
+    """Decode inputs, run the filter, encode estimates.
+
+    Parameters
+    ----------
+    settings : OutputSettings
+        Output identity and rates.
+    gps_defaults : GpsDefaults
+        Accuracies for GPS messages that lack them.
+    allow : set of (system id, component id), optional
+        Accepted input sources (None: all).
+    compensation : str, optional
+        Override the configuration's compensation.
+    wall_clock : callable, optional
+        Returns UNIX microseconds for SYSTEM_TIME (live); None uses the run clock.
+    on_frame : callable, optional
+        Called with every :class:`OutputFrame` as it is produced; otherwise
+        frames collect in :attr:`pending` for :meth:`take`.
+    keep_estimates : bool
+        Keep every epoch for the result (False for an endless live link).
+    """
+
+    def __init__(
+        self,
+        settings: OutputSettings | None = None,
+        *,
+        gps_defaults: GpsDefaults | None = None,
+        allow: set[tuple[int, int]] | None = None,
+        compensation: str | None = None,
+        wall_clock: Callable[[], int] | None = None,
+        on_frame: Callable[[OutputFrame], None] | None = None,
+        keep_estimates: bool = True,
+    ) -> None:
+        self.keep_estimates = keep_estimates
+        self.settings = settings or OutputSettings()
+        self.decoder = FrameDecoder(allow)
+        self.counts = self.decoder.counts
+        self.assembler = InputAssembler(
+            gps_defaults=gps_defaults or GpsDefaults(),
+            counts=self.counts,
+            on_samples=self._samples,
+            on_fix=self._fix,
+            on_config=self._config,
+        )
+        self.compensation = compensation
+        self.wall_clock = wall_clock
+        self.on_frame = on_frame
+        self.writer = FrameWriter(self.settings.system_id, self.settings.component_id)
+        self.config: RunConfig | None = None
+        self.pipeline: Pipeline | None = None
+        self.encoder: EstimateEncoder | None = None
+        self.failure: str | None = None
+        self.pending: list[OutputFrame] = []
+        self._early: list[tuple] = []
+
+    # ------------------------------------------------------------ input
+    def feed_datagram(self, data: bytes) -> None:
+        """One UDP datagram: decoded on its own (a corrupt one costs only itself)."""
+        for msg in self.decoder.decode_buffer(data):
+            self.assembler.add(msg)
+
+    def feed_message(self, msg: mavlink.MAVLink_message) -> None:
+        """One message already decoded (a tlog's frames)."""
+        self.assembler.add(msg)
+
+    def finish(self) -> RunResult | None:
+        """End of input: flush, finish the filter; its result (None if it never ran)."""
+        self.assembler.finish()
+        if self.pipeline is None:
+            if self.config is None:
+                self.failure = self.failure or "no complete NGNAV_CONFIG_TEXT configuration arrived"
+            return None
+        if self.failure is None:
+            self._guard(self.pipeline.finish)
+        if self.pipeline.started:
+            return self.pipeline.result()
+        return None
+
+    def take(self) -> list[OutputFrame]:
+        """The frames produced since the last call (when no ``on_frame`` is set)."""
+        out, self.pending = self.pending, []
+        return out
+
+    def heartbeat(self) -> OutputFrame:
+        """A HEARTBEAT frame now (for a live link's idle seconds); state from the session."""
+        if self.failure is not None:
+            status = mavlink.MAV_STATE_CRITICAL
+        elif self.pipeline is not None and self.pipeline.started:
+            status = mavlink.MAV_STATE_ACTIVE
+        else:
+            status = mavlink.MAV_STATE_STANDBY
+        enc = self.encoder or EstimateEncoder(
+            self.settings, LocalTangentPlane(0.0, 0.0, 0.0), 0.9999, 5.0, "none"
+        )
+        t_us = 0
+        if self.pipeline is not None and self.pipeline.started:
+            t_us = round(self.pipeline.nf.t_s * 1e6)
+        return OutputFrame(t_us, self.writer.pack(enc.heartbeat(status)), "HEARTBEAT")
+
+    # ---------------------------------------------------------- plumbing
+    def _config(self, text: str) -> None:
+        try:
+            cfg = read_run_config_text(text, "NGNAV_CONFIG_TEXT")
+        except ValueError as exc:
+            self.counts.add("bad configuration")
+            self.failure = str(exc)
+            return
+        self.config = cfg
+        n = cfg.layout.n_sensors
+        if self.assembler.n_channels is None:
+            self.assembler.n_channels = n
+        try:
+            self.pipeline = Pipeline(
+                cfg,
+                compensation=self.compensation,
+                on_epoch=self._epoch,
+                keep_estimates=self.keep_estimates,
+            )
+        except ValueError as exc:
+            self.failure = str(exc)
+            self.counts.add("filter failed")
+            return
+        self.encoder = EstimateEncoder(
+            self.settings,
+            LocalTangentPlane(cfg.lat0_deg, cfg.lon0_deg, cfg.alt0_m),
+            cfg.filter.gate_probability,
+            cfg.filter.gps_gap_reset_s,
+            self.pipeline.method,
+        )
+        early, self._early = self._early, []
+        for item in early:
+            if item[0] == "s":
+                self._samples(item[1], item[2])
+            else:
+                self._fix(item[1], item[2])
+
+    def _samples(self, t_us: np.ndarray, a: np.ndarray) -> None:
+        if self.pipeline is None:
+            if self.failure is None:
+                self._early.append(("s", t_us, a))
+            return
+        if a.shape[1] != self.pipeline.n_channels:
+            self.counts.add("wrong channel count", t_us.shape[0])
+            return
+        if self.failure is None:
+            self._guard(self.pipeline.push_samples, t_us * 1e-6, a)
+
+    def _fix(self, t_us: int, row: tuple[float, ...]) -> None:
+        if self.pipeline is None:
+            if self.failure is None:
+                self._early.append(("f", t_us, row))
+            return
+        if self.failure is None:
+            lat, lon, alt, vn, ve, vd, h, v, s = row
+            self._guard(self.pipeline.push_fix, t_us * 1e-6, lat, lon, alt, (vn, ve, vd), h, v, s)
+
+    def _guard(self, fn, *args) -> None:
+        try:
+            fn(*args)
+        except (CovarianceError, ValueError) as exc:
+            self.failure = str(exc)
+            self.counts.add("filter failed")
+
+    def _epoch(self, pipe: Pipeline) -> None:
+        unix = self.wall_clock() if self.wall_clock is not None else None
+        t_us = round(pipe.nf.t_s * 1e6)
+        for msg in self.encoder.epoch(pipe, unix):
+            frame = OutputFrame(t_us, self.writer.pack(msg), msg.get_type())
+            if self.on_frame is not None:
+                self.on_frame(frame)
+            else:
+                self.pending.append(frame)
