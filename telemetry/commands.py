@@ -115,7 +115,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
         write_estimates_csv(args.csv, st.result.estimates, st.config)
     summary = {
         "datagrams": st.datagrams,
-        "estimate epochs": 0 if st.result is None else int(st.result.estimates.t_s.shape[0]),
+        "estimate epochs": st.epochs,
         "frames sent": st.frames_sent,
         "latency p50 ms": p50 * 1e3,
         "latency p99 ms": p99 * 1e3,
@@ -160,6 +160,38 @@ def run_to_tlog(src: Path, out: Path, args: argparse.Namespace):
     return rr, reports
 
 
+def cmd_bench_stream(args: argparse.Namespace) -> int:
+    """``ngnav bench-stream``: the live link under load (see :mod:`telemetry.bench`)."""
+    from ngnav.flight_scenario import load_flight
+    from telemetry.bench import run_stream_bench
+
+    overrides = list(args.overrides)
+    if not any(o.startswith("gps.rate_hz=") for o in overrides):
+        overrides.append("gps.rate_hz=10")
+    scn = load_flight(args.scenario, overrides)
+    b = run_stream_bench(scn, args.seconds, args.speed, args.out_rate)
+    if args.json:
+        from dataclasses import asdict
+
+        print(json.dumps(asdict(b), indent=1))
+        return 0
+    print(
+        f"{scn.name}: {b.flight_s:.1f} s of flight at {scn.run.rate_hz:g} Hz array, "
+        f"{scn.gps.rate_hz:g} Hz GPS, estimates at {args.out_rate:g} Hz; "
+        f"speed {b.speed:g}x, wall {b.wall_s:.1f} s ({b.flight_s / b.wall_s:.1f}x real time)"
+    )
+    print(f"  input: {b.input_datagrams} datagrams sent, {b.input_frames_lost} frames lost")
+    print(
+        f"  estimates: {b.epochs} epochs, {b.estimate_frames_sent} frames sent, "
+        f"{b.estimate_frames_received} received, {b.estimate_frames_lost} lost (sequence gaps)"
+    )
+    print(
+        f"  latency input arrival -> estimate sent: p50 {b.latency_p50_ms:.3f} ms, "
+        f"p99 {b.latency_p99_ms:.3f} ms, max {b.latency_max_ms:.3f} ms"
+    )
+    return 0
+
+
 def add_stream_parser(sub) -> None:
     """Register ``ngnav stream``."""
     p = sub.add_parser(
@@ -183,3 +215,25 @@ def add_stream_parser(sub) -> None:
     p.add_argument("--json", action="store_true", help="summary as JSON")
     add_output_args(p)
     p.set_defaults(func=cmd_stream)
+
+    p = sub.add_parser(
+        "bench-stream", help="load benchmark: a flight streamed through ngnav stream over UDP"
+    )
+    p.add_argument(
+        "--scenario", default="uav-survey", help="flight scenario (default: %(default)s)"
+    )
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="override a scenario value (gps.rate_hz=10 unless given)",
+    )
+    p.add_argument("--seconds", type=float, default=600.0, help="flight seconds (default: 600)")
+    p.add_argument(
+        "--speed", type=float, default=10.0, help="times real time; 1 = real time (default: 10)"
+    )
+    p.add_argument("--out-rate", type=float, default=50.0, help="estimate rate, Hz (default: 50)")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_bench_stream)

@@ -133,6 +133,7 @@ class ServeStats:
     result: RunResult | None = None
     failure: str | None = None
     config: RunConfig | None = None
+    epochs: int = 0
 
     def latency_percentiles(self) -> tuple[float, float, float]:
         """p50, p99 and max of the input-to-estimate latency, s (NaN with no samples)."""
@@ -252,4 +253,5 @@ def serve(
         result,
         session.failure,
         session.config,
+        session.pipeline.n_epochs if session.pipeline is not None else 0,
     )
