@@ -128,6 +128,11 @@ def evaluate_scenario(
     ok = ~sim.glitched
     out["raw_gps_horiz_rms_m"] = float(np.sqrt(np.mean(d[ok, 0] ** 2 + d[ok, 1] ** 2)))
     out["targets"] = _targets(rows, out["raw_gps_horiz_rms_m"])
+    outage = out.get("events", {}).get("outage")
+    if outage is not None and "horiz_rms_over_raw_gps" in out["targets"]:
+        out["targets"]["horiz_rms_over_raw_gps_outside_outage"] = (
+            outage["horiz_rms_outside_outage_m"] / out["raw_gps_horiz_rms_m"]
+        )
     return out
 
 
@@ -185,10 +190,14 @@ def _events(sim: SimulatedRun, scn: FlightScenario, res: RunResult, errs: RunErr
                 rec = float(t[j] - t_end)
                 break
         at_end = errs.t_s.searchsorted(t_end)
+        # the horizontal RMS with GPS: outside the outage and the time it took to recover
+        t_back = t_end + (rec if rec is not None else np.inf)
+        aided = (errs.t_s < g.outage_start_s) | (errs.t_s >= t_back)
         ev["outage"] = {
             "end_s": t_end,
             "horiz_err_at_end_m": float(np.hypot(*errs.pos_ned_m[at_end, :2])),
             "recovered_within_3sigma_after_s": rec,
+            "horiz_rms_outside_outage_m": summarise(errs, aided).horiz_rms_m,
         }
     return ev
 

@@ -475,7 +475,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_output_args(p)
     p.set_defaults(func=cmd_run)
 
-    add_stream_parser(sub)
+    add_stream_parser(sub, _add_flight_args)
 
     p = sub.add_parser(
         "evaluate", help="errors of GM(1,1)/none/oracle/array-alone/GPS-alone on a simulated flight"

@@ -132,6 +132,19 @@ def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 def euler_from_quat(q: np.ndarray) -> np.ndarray:
     """Roll, pitch, yaw (ZYX, rad) from ``q_nb``, shape (..., 3). For display only."""
+    q = np.asarray(q, dtype=float)
+    if q.ndim == 1:
+        # one quaternion (the live output's path): the same formulas without array overhead
+        w, x, y, z = q.tolist()
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        w, x, y, z = w / n, x / n, y / n, z / n
+        return np.array(
+            [
+                math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
+                math.asin(min(1.0, max(-1.0, 2 * (w * y - z * x)))),
+                math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)),
+            ]
+        )
     q = quat_normalize(q)
     w, x, y, z = np.moveaxis(q, -1, 0)
     roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -36,7 +35,7 @@ from ngnav.flight_scenario import FlightScenario
 from ngnav.simulate import simulate_flight
 from telemetry.frames import FrameDecoder
 from telemetry.inputs import input_frames
-from telemetry.live import Endpoint, _socket, play_frames
+from telemetry.live import Endpoint, _socket, free_udp_port, play_frames
 from telemetry.tlog import FrameWriter, frames_of
 
 
@@ -59,14 +58,6 @@ class StreamBench:
     stream_summary: dict
 
 
-def _free_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
 def run_stream_bench(
     scn: FlightScenario, seconds: float, speed: float, out_rate_hz: float = 50.0
 ) -> StreamBench:
@@ -78,7 +69,7 @@ def run_stream_bench(
     fixes = sim.fixes.select(sim.fixes.t_s <= t[keep][-1])
     frames = list(frames_of(input_frames(samples, fixes, sim.config), FrameWriter()))
 
-    p_in, p_out = _free_port(), _free_port()
+    p_in, p_out = free_udp_port(), free_udp_port()
     rx = _socket()
     rx.bind(("127.0.0.1", p_out))
     rx.settimeout(0.5)

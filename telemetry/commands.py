@@ -189,11 +189,19 @@ def cmd_bench_stream(args: argparse.Namespace) -> int:
         f"  latency input arrival -> estimate sent: p50 {b.latency_p50_ms:.3f} ms, "
         f"p99 {b.latency_p99_ms:.3f} ms, max {b.latency_max_ms:.3f} ms"
     )
+    f = b.stream_summary["filter"]
+    print(
+        f"  filter: {f.get('samples held (non-finite)', 0)} samples held, "
+        f"{f.get('gps positions rejected (gate)', 0)} GPS positions rejected, "
+        f"{f.get('gps fixes later than the fusion lag', 0)} fixes later than the fusion lag"
+        + (f"; FAILED: {b.stream_summary['failure']}" if b.stream_summary["failure"] else "")
+    )
     return 0
 
 
-def add_stream_parser(sub) -> None:
-    """Register ``ngnav stream``."""
+def add_stream_parser(sub, add_flight_args) -> None:
+    """Register ``ngnav stream`` and ``ngnav bench-stream`` (``add_flight_args``: the
+    CLI's ``--scenario``/``--set`` options)."""
     p = sub.add_parser(
         "stream", help="estimate from a live MAVLink UDP link and send the estimates"
     )
@@ -219,17 +227,7 @@ def add_stream_parser(sub) -> None:
     p = sub.add_parser(
         "bench-stream", help="load benchmark: a flight streamed through ngnav stream over UDP"
     )
-    p.add_argument(
-        "--scenario", default="uav-survey", help="flight scenario (default: %(default)s)"
-    )
-    p.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="SECTION.KEY=VALUE",
-        help="override a scenario value (gps.rate_hz=10 unless given)",
-    )
+    add_flight_args(p)
     p.add_argument("--seconds", type=float, default=600.0, help="flight seconds (default: 600)")
     p.add_argument(
         "--speed", type=float, default=10.0, help="times real time; 1 = real time (default: 10)"

@@ -51,6 +51,9 @@ CONFIG_CHUNK = 200
 _IGNORE_DOP = mavlink.GPS_INPUT_IGNORE_FLAG_HDOP | mavlink.GPS_INPUT_IGNORE_FLAG_VDOP
 
 
+_BITS = np.arange(SAMPLE_MAX_CHANNELS)
+
+
 def to_usec(t_s: float | np.ndarray) -> np.ndarray:
     """Run-clock seconds to integer microseconds (rounded)."""
     return np.rint(np.asarray(t_s, dtype=float) * 1e6).astype(np.int64)
@@ -311,7 +314,7 @@ class InputAssembler:
             self.counts.add(kind)
             return
         a = np.array(values, dtype=float)
-        ok = np.array([(valid >> i) & 1 for i in range(a.shape[0])], dtype=bool)
+        ok = ((valid >> _BITS[: a.shape[0]]) & 1).astype(bool)
         bad = ok & ~np.isfinite(a)
         if bad.any():
             self.counts.add("non-finite field")

@@ -69,6 +69,16 @@ def parse_endpoint(text: str, mode: str) -> Endpoint:
     return Endpoint(parts[0], parts[1], port)
 
 
+def free_udp_port(host: str = "127.0.0.1") -> int:
+    """A UDP port free on ``host`` just now (the OS picks it; another process may take it)."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+    finally:
+        s.close()
+
+
 def _socket() -> socket.socket:
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     for opt in (socket.SO_RCVBUF, socket.SO_SNDBUF):

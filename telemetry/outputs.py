@@ -151,7 +151,10 @@ def upper_triangle(m: np.ndarray) -> list[float]:
 
 
 def odometry_covariances(
-    q_nb: np.ndarray, vel_ned_mps: np.ndarray, cov_nav: np.ndarray
+    q_nb: np.ndarray,
+    vel_ned_mps: np.ndarray,
+    cov_nav: np.ndarray,
+    rpy_rad: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """ODOMETRY's pose and twist covariances (6x6 each) from the filter's error covariance.
 
@@ -164,6 +167,8 @@ def odometry_covariances(
     cov_nav : array (12, 12)
         Covariance of the error states ``[dp_ned, dv_ned, dtheta_ned, dw_b]``
         (``q_true = exp(dtheta) q_est``).
+    rpy_rad : array (3,), optional
+        ``euler_from_quat(q_nb)`` when the caller has it already.
 
     Returns
     -------
@@ -179,7 +184,7 @@ def odometry_covariances(
     is ``C^T dv + C^T [v x] dtheta``.
     """
     c = dcm_from_quat(q_nb)
-    roll, pitch, _ = euler_from_quat(q_nb)
+    roll, pitch, _ = (euler_from_quat(q_nb) if rpy_rad is None else rpy_rad).tolist()
     sr, cr = math.sin(roll), math.cos(roll)
     tp, cp = math.tan(pitch), math.cos(pitch)
     e_inv = np.array(
@@ -273,6 +278,7 @@ class EstimateEncoder:
         q = nf.q
         w = nf.w
         pos, vel = nf.pos, nf.vel
+        rpy = euler_from_quat(q)
         if self._due("attitude_quaternion", t_us):
             out.append(
                 mavlink.MAVLink_attitude_quaternion_message(
@@ -280,7 +286,6 @@ class EstimateEncoder:
                 )
             )
         if self._due("attitude", t_us):
-            rpy = euler_from_quat(q)
             out.append(
                 mavlink.MAVLink_attitude_message(
                     ms, *(float(x) for x in rpy), *(float(x) for x in w)
@@ -294,7 +299,7 @@ class EstimateEncoder:
             )
         if self._due("global_position_int", t_us):
             lat, lon, alt = self.ltp.to_geodetic(pos[None, :])
-            yaw = float(euler_from_quat(q)[2])
+            yaw = float(rpy[2])
             hdg = round(math.degrees(yaw) * 100.0) % 36000
             out.append(
                 mavlink.MAVLink_global_position_int_message(
@@ -309,7 +314,7 @@ class EstimateEncoder:
             )
         cov = nf.P[:12, :12]
         if self._due("odometry", t_us):
-            pose, twist = odometry_covariances(q, vel, cov)
+            pose, twist = odometry_covariances(q, vel, cov, rpy)
             v_b = dcm_from_quat(q).T @ vel
             resets = nf.counters.gps_resets + nf.counters.gps_gap_resets
             out.append(

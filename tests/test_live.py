@@ -22,6 +22,7 @@ import pytest
 
 from telemetry import ngnav_mavlink as mavlink
 from telemetry.frames import FrameDecoder
+from telemetry.live import free_udp_port
 from telemetry.tlog import read_tlog
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -29,14 +30,6 @@ NGNAV = [sys.executable, "-m", "ngnav.cli"]
 SCENARIO = ["--scenario", "tactical", "--set", "run.rate_hz=200"]
 #: Messages whose content follows the wall clock on a live link.
 WALL_CLOCK = {"SYSTEM_TIME", "HEARTBEAT"}
-
-
-def _free_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 def _wait_line(proc: subprocess.Popen, text: str) -> None:
@@ -56,7 +49,7 @@ def live_run(tmp_path_factory):
         env=env,
         capture_output=True,
     )
-    p_in, p_out = _free_port(), _free_port()
+    p_in, p_out = free_udp_port(), free_udp_port()
     client_out = tmp / "client.jsonl"
     client = subprocess.Popen(
         [sys.executable, str(ROOT / "tests" / "mav_client.py"), str(p_out), str(client_out), "4"],
