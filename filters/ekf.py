@@ -307,6 +307,27 @@ class NavFilter:
         self.counters.samples += k
         return w
 
+    def add_hold_noise(
+        self, t_before_s: float, t_after_s: float, wdot_sigma_rps2: float, f_sigma_mps2: float
+    ) -> None:
+        """Covariance of the forecast that stood in for held (missing) samples.
+
+        Over a run of held samples the filter propagates on the compensation's
+        forecast, whose error is modelled as a random constant (1-sigma
+        ``wdot_sigma_rps2``, ``f_sigma_mps2``) over the run: the rate error grows
+        as ``sigma T`` and the velocity error as ``sigma_f T``. The run grew from
+        ``t_before_s`` to ``t_after_s`` held seconds in this block; the increment
+        of those variances is added (the transition carries them into attitude and
+        position at the next block).
+        """
+        d = t_after_s * t_after_s - t_before_s * t_before_s
+        if d <= 0.0:
+            return
+        p = self.P
+        p[RATE, RATE] += np.eye(3) * (wdot_sigma_rps2 * wdot_sigma_rps2 * d)
+        p[VEL, VEL] += np.eye(3) * (f_sigma_mps2 * f_sigma_mps2 * d)
+        self.P = p
+
     def _feature_offset(self, sg: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """What the nominal removes from ``wdot`` and ``f``: biases plus ``S G dr_hat``."""
         bw, bf = self.bias[0:3], self.bias[3:6]

@@ -580,6 +580,7 @@ class Pipeline:
         self._phi_hat = np.zeros(12) if self.predictor is not None else None
         self._full_check_every = max(1, round(cfg.filter.rate_hz))  # Cholesky once a second
         self._e = 0
+        self._t_hold = 0.0  # seconds of held samples in the current run
         self.started = True
 
     # --------------------------------------------------------------- blocks
@@ -673,6 +674,8 @@ class Pipeline:
                     truth.omega_dot_b_rps2[blk].mean(axis=0), truth.omega_b_rps[blk].mean(axis=0)
                 )
         w_blk = nf.propagate(xs[:, 0:3], xs[:, 3:6], dt, sg)
+        if n_ok < kk or self._t_hold > 0.0:
+            self._hold_noise(bad, dt)
         if p_bound is not None:
             c_true = self._c_true
             f_n_true = np.mean(
@@ -739,6 +742,21 @@ class Pipeline:
         self._record()
         if self.on_epoch is not None:
             self.on_epoch(self)
+
+    def _hold_noise(self, bad: np.ndarray, dt: float) -> None:
+        """Add the forecast's error over the held runs of this block (see FilterSettings)."""
+        fs = self.cfg.filter
+        t_run = self._t_hold
+        for held in bad.tolist():
+            if held:
+                t_new = t_run + dt
+                self.nf.add_hold_noise(
+                    t_run, t_new, fs.hold_wdot_sigma_rps2, fs.hold_force_sigma_mps2
+                )
+                t_run = t_new
+            else:
+                t_run = 0.0
+        self._t_hold = t_run
 
     def _fuse_fix(self, fix: tuple, i1: int, p_bound: np.ndarray | None) -> None:
         if not self.use_gps:

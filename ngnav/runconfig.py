@@ -27,7 +27,8 @@ truth to separate files.
                    yaw_deg, tilt_sigma_deg, heading_source = "config"|"gps",
                    heading_sigma_deg, rate_sigma_dps
     [filter]       rate_hz, compensation, window, gate_probability, rate_range_dps,
-                   sideslip_sigma_deg, gps_gap_reset_s, fusion_lag_s
+                   sideslip_sigma_deg, gps_gap_reset_s, fusion_lag_s,
+                   hold_wdot_sigma_rps2, hold_force_sigma_mps2
 """
 
 from __future__ import annotations
@@ -97,6 +98,8 @@ class FilterSettings:
     sideslip_sigma_deg: float = 0.0
     gps_gap_reset_s: float = 5.0
     fusion_lag_s: float = 0.1
+    hold_wdot_sigma_rps2: float = 2.0
+    hold_force_sigma_mps2: float = 3.0
 
     def __post_init__(self) -> None:
         if self.compensation not in COMPENSATIONS:
@@ -111,6 +114,10 @@ class FilterSettings:
             raise ValueError(
                 f"filter.gps_gap_reset_s must be a finite number >= 0, got {self.gps_gap_reset_s}"
             )
+        for name in ("hold_wdot_sigma_rps2", "hold_force_sigma_mps2"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0.0):
+                raise ValueError(f"filter.{name} must be a finite number >= 0, got {v}")
         if not (np.isfinite(self.fusion_lag_s) and 0.0 <= self.fusion_lag_s <= 10.0):
             raise ValueError(
                 f"filter.fusion_lag_s must be a number in [0, 10] s, got {self.fusion_lag_s}"

@@ -59,7 +59,11 @@ class StreamBench:
 
 
 def run_stream_bench(
-    scn: FlightScenario, seconds: float, speed: float, out_rate_hz: float = 50.0
+    scn: FlightScenario,
+    seconds: float,
+    speed: float,
+    out_rate_hz: float = 50.0,
+    busy_poll: bool = False,
 ) -> StreamBench:
     """Stream ``seconds`` of ``scn`` through a real ``ngnav stream`` process (see module doc)."""
     sim = simulate_flight(scn, 0)
@@ -112,6 +116,8 @@ def run_stream_bench(
     ]
     for r in rates:
         cmd += ["--rate", r]
+    if busy_poll:
+        cmd.append("--busy-poll")
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:

@@ -109,6 +109,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
         keep_estimates=args.csv is not None,
         out_tlog=args.tlog,
         ready=ready,
+        busy_poll=args.busy_poll,
     )
     p50, p99, pmax = st.latency_percentiles()
     if args.csv is not None and st.result is not None:
@@ -169,7 +170,7 @@ def cmd_bench_stream(args: argparse.Namespace) -> int:
     if not any(o.startswith("gps.rate_hz=") for o in overrides):
         overrides.append("gps.rate_hz=10")
     scn = load_flight(args.scenario, overrides)
-    b = run_stream_bench(scn, args.seconds, args.speed, args.out_rate)
+    b = run_stream_bench(scn, args.seconds, args.speed, args.out_rate, args.busy_poll)
     if args.json:
         from dataclasses import asdict
 
@@ -218,6 +219,11 @@ def add_stream_parser(sub, add_flight_args) -> None:
     p.add_argument(
         "--allow", action="append", default=[], metavar="SYSID:COMPID", help="accepted sources"
     )
+    p.add_argument(
+        "--busy-poll",
+        action="store_true",
+        help="spin on the input socket instead of sleeping (one core busy, lower latency)",
+    )
     p.add_argument("--csv", help="also write every estimate as estimates.csv at the end")
     p.add_argument("--tlog", help="also log the estimate frames sent as a tlog")
     p.add_argument("--json", action="store_true", help="summary as JSON")
@@ -233,5 +239,6 @@ def add_stream_parser(sub, add_flight_args) -> None:
         "--speed", type=float, default=10.0, help="times real time; 1 = real time (default: 10)"
     )
     p.add_argument("--out-rate", type=float, default=50.0, help="estimate rate, Hz (default: 50)")
+    p.add_argument("--busy-poll", action="store_true", help="run ngnav stream --busy-poll")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_stream)

@@ -234,3 +234,37 @@ def test_first_fix_after_an_outage_resets_position_and_velocity(tactical):
     assert res2.counts["gps resets after an outage"] == 1  # the next, good, fix
     err2 = run_errors(res2.estimates, tactical.truth)
     assert np.linalg.norm(err2.pos_ned_m[e, :2]) < 10.0
+
+
+def test_a_long_gap_of_held_samples_widens_the_covariance(tactical):
+    """0.5 s of lost array samples in a 2 g turn: the forecast stands in, and the
+    covariance grows with its error (filter.hold_*), so the attitude stays consistent."""
+    from dataclasses import replace
+
+    from scipy.stats import chi2
+
+    sim = tactical
+    acc = sim.samples.accel_mps2.copy()
+    i0 = int(np.searchsorted(sim.samples.t_s, 12.0))
+    acc[i0 : i0 + 100] = np.nan
+    gap = ArraySamples(sim.samples.t_s, acc)
+    ref = run_filter(sim.samples, sim.fixes, sim.config)
+
+    def worst_att_nees(cfg):
+        r = run_filter(gap, sim.fixes, cfg)
+        e = run_errors(r.estimates, sim.truth)
+        m = (e.t_s > 12.0) & (e.t_s < 20.0)
+        d = e.stacked()[m][:, 6:9]
+        p = r.estimates.cov_nav[m][:, 6:9, 6:9]
+        return float(np.einsum("ei,eij,ej->e", d, np.linalg.inv(p), d).max()), r
+
+    worst, res = worst_att_nees(sim.config)
+    assert res.counts["samples held (non-finite)"] == 100
+    assert worst < chi2.ppf(0.999, 3)
+    assert (
+        res.counts["gps positions rejected (gate)"] == ref.counts["gps positions rejected (gate)"]
+    )
+    # the same gap without the hold model: the filter turns grossly overconfident
+    off = replace(sim.config.filter, hold_wdot_sigma_rps2=0.0, hold_force_sigma_mps2=0.0)
+    worst_off, _ = worst_att_nees(replace(sim.config, filter=off))
+    assert worst_off > 100 * chi2.ppf(0.999, 3)
