@@ -130,6 +130,10 @@ class OutputSettings:
             rates[name] = float(hz)
         object.__setattr__(self, "rates_hz", rates)
 
+    def heartbeat(self, status: int) -> mavlink.MAVLink_message:
+        """A HEARTBEAT of this sender with the given ``MAV_STATE``."""
+        return mavlink.MAVLink_heartbeat_message(self.vehicle_type, self.autopilot, 0, 0, status, 3)
+
 
 def parse_rates(items: list[str]) -> dict[str, float]:
     """``["odometry=10", ...]`` to ``{"odometry": 10.0}`` (ValueError naming the bad item)."""
@@ -253,11 +257,6 @@ class EstimateEncoder:
         self.sent[name] += 1
         return True
 
-    def heartbeat(self, status: int) -> mavlink.MAVLink_message:
-        """A HEARTBEAT with the given ``MAV_STATE``."""
-        s = self.settings
-        return mavlink.MAVLink_heartbeat_message(s.vehicle_type, s.autopilot, 0, 0, status, 3)
-
     def epoch(self, pipe, unix_usec: int | None = None) -> list[mavlink.MAVLink_message]:
         """The messages due at the pipeline's latest epoch.
 
@@ -271,7 +270,7 @@ class EstimateEncoder:
         ms = _ms(t_us)
         out: list[mavlink.MAVLink_message] = []
         if self._due("heartbeat", t_us):
-            out.append(self.heartbeat(mavlink.MAV_STATE_ACTIVE))
+            out.append(self.settings.heartbeat(mavlink.MAV_STATE_ACTIVE))
         if self._due("system_time", t_us):
             unix = EPOCH_BASE_US + t_us if unix_usec is None else int(unix_usec)
             out.append(mavlink.MAVLink_system_time_message(unix, ms))

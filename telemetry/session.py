@@ -132,13 +132,10 @@ class StreamSession:
             status = mavlink.MAV_STATE_ACTIVE
         else:
             status = mavlink.MAV_STATE_STANDBY
-        enc = self.encoder or EstimateEncoder(
-            self.settings, LocalTangentPlane(0.0, 0.0, 0.0), 0.9999, 5.0, "none"
-        )
         t_us = 0
         if self.pipeline is not None and self.pipeline.started:
             t_us = round(self.pipeline.nf.t_s * 1e6)
-        return OutputFrame(t_us, self.writer.pack(enc.heartbeat(status)), "HEARTBEAT")
+        return OutputFrame(t_us, self.writer.pack(self.settings.heartbeat(status)), "HEARTBEAT")
 
     # ---------------------------------------------------------- plumbing
     def _config(self, text: str) -> None:
