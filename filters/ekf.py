@@ -63,7 +63,17 @@ def _quadratic_form(y: np.ndarray, s: np.ndarray) -> float:
 
 
 class CovarianceError(RuntimeError):
-    """The covariance stopped being symmetric positive definite."""
+    """The covariance stopped being symmetric positive definite.
+
+    Attributes
+    ----------
+    partial : filters.pipeline.RunResult or None
+        What the run estimated before the failure, when the failure came out of
+        :func:`filters.pipeline.run_filter` after the filter had started (None
+        otherwise). It lets a comparison use the time before a divergence.
+    """
+
+    partial = None
 
 
 @dataclass(frozen=True)

@@ -88,6 +88,8 @@ def evaluate_scenario(
     rows = []
     main = None
     t_ref = None
+    # every configuration's errors, and the partial ones of a diverged configuration
+    errors: dict[str, RunErrors] = {}
     for name in configurations:
         if name == "gps-alone":
             continue
@@ -97,8 +99,11 @@ def evaluate_scenario(
             # a diverging configuration (e.g. no compensation) is a result, not a crash
             nan = ErrorSummary(*([float("nan")] * len(ErrorSummary.__dataclass_fields__)))
             rows.append(EvaluationRow(name, nan, None, {}, f"diverged: {exc}"))
+            if exc.partial is not None:
+                errors[name] = run_errors(exc.partial.estimates, sim.truth)
             continue
         errs = run_errors(res.estimates, sim.truth)
+        errors[name] = errs
         bnd = (
             bound_summary(res.estimates.bound_nav) if res.estimates.bound_nav is not None else None
         )
@@ -128,6 +133,9 @@ def evaluate_scenario(
     ok = ~sim.glitched
     out["raw_gps_horiz_rms_m"] = float(np.sqrt(np.mean(d[ok, 0] ** 2 + d[ok, 1] ** 2)))
     out["targets"] = _targets(rows, out["raw_gps_horiz_rms_m"])
+    before = gap_before_divergence(rows, errors)
+    if before is not None:
+        out["targets"]["gm11_gap_closed_before_divergence"] = before
     outage = out.get("events", {}).get("outage")
     if outage is not None and "horiz_rms_over_raw_gps" in out["targets"]:
         out["targets"]["horiz_rms_over_raw_gps_outside_outage"] = (
@@ -155,6 +163,40 @@ def _targets(rows: list[EvaluationRow], raw_gps_horiz_rms_m: float) -> dict:
             gap = none.att_rms_deg - oracle.att_rms_deg
             out["gm11_gap_closed"] = (none.att_rms_deg - gm.att_rms_deg) / gap
     return out
+
+
+def _att_rms_deg(errs: RunErrors, mask: np.ndarray) -> float:
+    """Roll, pitch and yaw RMS over ``mask``, added in quadrature (as ``att_rms_deg``)."""
+    return float(np.sqrt(np.mean(np.sum(errs.rpy_deg[mask] ** 2, axis=1))))
+
+
+def gap_before_divergence(rows: list[EvaluationRow], errors: dict[str, RunErrors]) -> dict | None:
+    """The GM(1,1) attitude gap over the time before no compensation diverged.
+
+    When the uncompensated filter diverges its whole-run RMS is undefined, so
+    the three configurations are compared over the epochs the diverged run
+    did estimate (from the filter's start to its last recorded epoch before
+    the failure): ``(none - gm11) / (none - oracle)`` of the attitude RMS
+    (roll, pitch, yaw in quadrature). None when no compensation did not
+    diverge or a configuration is missing.
+    """
+    by = {r.name: r for r in rows}
+    none = by.get("none")
+    if none is None or not none.failure or not {"none", "gm11", "oracle"} <= errors.keys():
+        return None
+    if by["gm11"].failure or by["oracle"].failure:
+        return None
+    t_end = float(errors["none"].t_s[-1])
+    rms = {}
+    for name in ("none", "gm11", "oracle"):
+        e = errors[name]
+        rms[name] = _att_rms_deg(e, e.t_s <= t_end + 1e-9)
+    gap = rms["none"] - rms["oracle"]
+    return {
+        "window_s": [float(errors["none"].t_s[0]), t_end],
+        "att_rms_deg": rms,
+        "closed": (rms["none"] - rms["gm11"]) / gap if gap > 0 else float("nan"),
+    }
 
 
 def _events(sim: SimulatedRun, scn: FlightScenario, res: RunResult, errs: RunErrors) -> dict:

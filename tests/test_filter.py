@@ -9,8 +9,13 @@ import numpy as np
 import pytest
 
 from filters.ekf import CovarianceError, FilterNoise, NavFilter
-from filters.evaluate import run_errors
-from filters.experiments import consistency
+from filters.evaluate import run_errors, summarise
+from filters.experiments import (
+    EvaluationRow,
+    consistency,
+    gap_before_divergence,
+    run_configuration,
+)
 from filters.pipeline import run_filter
 from ngnav.flight_scenario import load_flight
 from ngnav.records import ArraySamples
@@ -125,6 +130,63 @@ def test_covariance_check_fails_loudly():
     nf.P = p
     with pytest.raises(CovarianceError, match=r"not positive definite after test at t = 0\.000 s"):
         nf.check_covariance("test")
+
+
+@pytest.fixture(scope="module")
+def tactical_1khz():
+    # at 1 kHz the uncompensated filter fails its covariance check at about 22 s
+    return simulate_flight(load_flight("tactical"), 0)
+
+
+def test_a_diverged_run_keeps_what_it_estimated_before_the_failure(tactical_1khz):
+    sim = tactical_1khz
+    with pytest.raises(CovarianceError) as info:
+        run_filter(sim.samples, sim.fixes, sim.config, compensation="none")
+    part = info.value.partial
+    assert part is not None
+    t_fail = float(info.value.args[0].split("t = ")[1].split(" s")[0])
+    assert 5.0 < part.estimates.t_s[-1] <= t_fail
+    # causality: the partial estimates are those of the same run cut short
+    cut = sim.samples.t_s <= 10.0
+    short = run_filter(
+        ArraySamples(sim.samples.t_s[cut], sim.samples.accel_mps2[cut]),
+        sim.fixes,
+        sim.config,
+        compensation="none",
+    )
+    k = short.estimates.t_s <= 9.5
+    n = int(k.sum())
+    np.testing.assert_allclose(part.estimates.t_s[:n], short.estimates.t_s[k], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        part.estimates.pos_ned_m[:n], short.estimates.pos_ned_m[k], atol=1e-6
+    )
+    np.testing.assert_allclose(part.estimates.cov_nav[:n], short.estimates.cov_nav[k], atol=1e-8)
+
+
+def test_gm11_gap_is_measured_before_no_compensation_diverges(tactical_1khz):
+    sim = tactical_1khz
+    errors, rows = {}, []
+    for name in ("gm11", "none", "oracle"):
+        try:
+            res, failure = run_configuration(sim, name), None
+        except CovarianceError as exc:
+            res, failure = exc.partial, f"diverged: {exc}"
+        errors[name] = run_errors(res.estimates, sim.truth)
+        rows.append(EvaluationRow(name, summarise(errors[name]), None, {}, failure))
+    assert rows[1].failure and not rows[0].failure and not rows[2].failure
+    gap = gap_before_divergence(rows, errors)
+    t0, t1 = gap["window_s"]
+    assert t1 == errors["none"].t_s[-1] and 5.0 < t1 < 60.0
+    rms = {}
+    for name, e in errors.items():
+        s = summarise(e, (e.t_s >= t0) & (e.t_s <= t1))
+        rms[name] = float(np.sqrt(s.roll_rms_deg**2 + s.pitch_rms_deg**2 + s.yaw_rms_deg**2))
+        assert gap["att_rms_deg"][name] == pytest.approx(rms[name], rel=1e-9)
+    closed = (rms["none"] - rms["gm11"]) / (rms["none"] - rms["oracle"])
+    assert gap["closed"] == pytest.approx(closed, rel=1e-9)
+    # without a divergence there is nothing to window
+    rows[1] = EvaluationRow("none", rows[1].summary, None, {}, None)
+    assert gap_before_divergence(rows, errors) is None
 
 
 def test_oracle_needs_truth(tactical):
