@@ -84,3 +84,42 @@ def test_channel_count_mismatch():
             None,
             LastValuePredictor(),
         )
+
+
+def test_forecast_feedback_scales_the_long_run_noise_by_the_closed_loop():
+    """The loop the filter's noise model assumes (``filters.pipeline.filter_noise``).
+
+    The sensors read ``(I + E) phi + n``; the compensation subtracts ``E``
+    times the GM(1,1) forecast made from the compensated block means. Over
+    many blocks the compensated error must then be ``(I + E)^-1 n``: the
+    segment means of 200 blocks are tested against that covariance with a
+    chi-square bound, and against the raw covariance, which must fail.
+    """
+    from scipy.stats import chi2
+
+    rng = np.random.default_rng(11)
+    e6 = 0.3 * np.eye(6) + 0.03 * rng.standard_normal((6, 6))
+    a = np.linalg.inv(np.eye(6) + e6)
+    phi = np.array([0.3, -0.2, 0.1, 0.5, -0.4, 9.0])
+    sigma = 0.05
+    window = 5
+    gp = GreyPredictor(window=window, shift=np.full(6, 20.0))
+    n_seg, seg = 150, 200
+    hist = np.tile(phi, (window, 1))
+    errs = np.empty((n_seg * seg, 6))
+    for k in range(errs.shape[0]):
+        forecast, _ = gp.forecast(hist[-window:], k)
+        comp = phi + e6 @ phi + sigma * rng.standard_normal(6) - e6 @ forecast
+        errs[k] = comp - phi
+        hist = np.vstack([hist[1:], comp])
+    means = errs.reshape(n_seg, seg, 6).mean(axis=1)
+
+    def statistic(cov_per_block: np.ndarray) -> float:
+        inv = np.linalg.inv(cov_per_block / seg)
+        return float(np.einsum("si,ij,sj->", means, inv, means))
+
+    lo, hi = chi2.ppf([0.0005, 0.9995], 6 * n_seg)
+    closed = statistic(a @ (sigma**2 * np.eye(6)) @ a.T)
+    raw = statistic(sigma**2 * np.eye(6))
+    assert lo < closed < hi
+    assert raw < lo
