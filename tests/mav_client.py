@@ -9,6 +9,7 @@ silence once something arrived (or 60 s with nothing).
 
 import json
 import os
+import socket
 import sys
 import time
 
@@ -19,6 +20,11 @@ from pymavlink import mavutil
 def main() -> int:
     port, out, idle = int(sys.argv[1]), sys.argv[2], float(sys.argv[3])
     conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", dialect="common")
+    # A ground station on a fast link sizes its receive buffer for bursts, as the
+    # stream's own sockets do: the replay runs at 20x real time (thousands of frames
+    # a second) and this decoder, sharing two cores with two other processes, can
+    # fall behind the default 208 KiB (one CI run lost frames that way).
+    conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
     print("listening", flush=True)
     t_last = None
     t0 = time.monotonic()
