@@ -165,11 +165,6 @@ def _targets(rows: list[EvaluationRow], raw_gps_horiz_rms_m: float) -> dict:
     return out
 
 
-def _att_rms_deg(errs: RunErrors, mask: np.ndarray) -> float:
-    """Roll, pitch and yaw RMS over ``mask``, added in quadrature (as ``att_rms_deg``)."""
-    return float(np.sqrt(np.mean(np.sum(errs.rpy_deg[mask] ** 2, axis=1))))
-
-
 def gap_before_divergence(rows: list[EvaluationRow], errors: dict[str, RunErrors]) -> dict | None:
     """The GM(1,1) attitude gap over the time before no compensation diverged.
 
@@ -190,7 +185,8 @@ def gap_before_divergence(rows: list[EvaluationRow], errors: dict[str, RunErrors
     rms = {}
     for name in ("none", "gm11", "oracle"):
         e = errors[name]
-        rms[name] = _att_rms_deg(e, e.t_s <= t_end + 1e-9)
+        window = summarise(e, e.t_s <= t_end + 1e-9)
+        rms[name] = EvaluationRow(name, window, None, {}).att_rms_deg
     gap = rms["none"] - rms["oracle"]
     return {
         "window_s": [float(errors["none"].t_s[0]), t_end],
