@@ -153,9 +153,6 @@ class NavFilter:
         ``noise.position_sigma_m`` they switch on the ``DR`` states.
     solve_matrix : array (k, N), optional
         The solve operator ``S`` (solved features from channel outputs).
-    observability_constraint : bool
-        Project the sideslip Jacobian off the heading null space of a GPS-free
-        stretch (:meth:`_constrain_heading`); True by default.
     """
 
     noise: FilterNoise
@@ -165,7 +162,6 @@ class NavFilter:
     rate_measurement: bool = True
     sensor_axes_b: np.ndarray | None = None
     solve_matrix: np.ndarray | None = None
-    observability_constraint: bool = True
     counters: Counters = field(default_factory=Counters)
 
     def __post_init__(self) -> None:
@@ -207,8 +203,6 @@ class NavFilter:
         self.last_rate_innovation = np.zeros(self.layout.nq)
         self._last_wdot = np.zeros(3)
         self._last_f = np.zeros(3)
-        # velocity of the propagated heading null space (see update_sideslip)
-        self.v_null = np.zeros(3)
         # the constant part of the error dynamics, copied and filled per block
         fc = np.zeros((n, n))
         fc[POS, VEL] = np.eye(3)
@@ -250,7 +244,6 @@ class NavFilter:
         self.P = p
         self.x = np.zeros(self.layout.n)
         self.t_last_position_fix = self.t_s
-        self.v_null = self.vel.copy()
         self.check_covariance("initialisation")
 
     # ------------------------------------------------------------- propagation
@@ -312,7 +305,6 @@ class NavFilter:
         # attitude: exact product of the sample rotations, with the coning term
         rot = cum[-1] + 0.5 * cross_rows(cum[:-1], alpha).sum(axis=0)
         self.q = quat_normalize(quat_multiply(self.q, quat_from_rotvec(rot)))
-        self.v_null = self.v_null + (v_all[-1] - self.vel)
         self.vel = v_all[-1]
         w = w_all[1:]
         self.w = w[-1].copy()
@@ -617,9 +609,6 @@ class NavFilter:
         self._consec_rejects = 0 if ok_p else self._consec_rejects + 1
         if ok_p:
             self.t_last_position_fix = self.t_s
-        if ok_p or ok_v:
-            # a fix makes the heading observable: the null space restarts here
-            self.v_null = self.vel.copy()
         return GpsUpdateResult(nis_p, nis_v, ok_p, ok_v, nis_h, nis_vt)
 
     def sideslip_model(self, q_nb: np.ndarray, vel_ned_mps: np.ndarray) -> tuple[float, np.ndarray]:
@@ -640,8 +629,6 @@ class NavFilter:
         if speed < min_speed_mps:
             return None
         v_lat, h = self.sideslip_model(self.q, self.vel)
-        if self.observability_constraint:
-            h = self._constrain_heading(h)
         mean2, var2 = self.sideslip_second_order()
         r = np.array([[(speed * np.tan(sigma_rad)) ** 2 + var2]])
         nis, ok = self._gated_update(np.array([-(v_lat + mean2)]), r, h, self.gate1)
@@ -677,28 +664,6 @@ class NavFilter:
         mean = 0.5 * float(np.trace(am @ px[0:3, 0:3])) + float(np.trace(sa @ px[3:6, 0:3]))
         mp = m @ px
         return mean, 0.5 * float(np.sum(mp * mp.T))
-
-    def _constrain_heading(self, h: np.ndarray) -> np.ndarray:
-        """Project a sideslip Jacobian (1, n) so that it sees no common heading rotation.
-
-        Without GPS nothing observes a rotation of velocity and attitude together
-        about NED down (``dv = e_z x v``, ``dtheta = e_z``): gravity, the body-frame
-        rate products and the body-lateral velocity are all unchanged by it. The
-        EKF loses that null space because each sideslip Jacobian is taken at the
-        velocity *after* the previous update, while the transition carried the
-        null space from the velocity *before* it; every update then claims heading
-        information that is not there (the coast turns overconfident in yaw, the
-        more so the tighter the sideslip sigma). As in the observability-constrained
-        EKF (Hesch et al., IEEE T-RO 30(1), 2014), the Jacobian is projected
-        minimally, ``H - (H u) u^T / (u^T u)``, onto the complement of the null
-        direction ``u`` propagated by the same increments as the nominal velocity
-        but not moved by updates (``v_null``); a GPS fix restarts it, because a
-        fix observes the heading.
-        """
-        u = np.zeros(self.layout.n)
-        u[VEL] = np.cross(self._eye3[2], self.v_null)
-        u[8] = 1.0
-        return h - np.outer(h @ u, u) / (u @ u)
 
     def _gated_update(
         self, y: np.ndarray, r: np.ndarray, h: np.ndarray, gate: float | None = None
@@ -754,7 +719,6 @@ class NavFilter:
         self.P = p
         self._consec_rejects = 0
         self.t_last_position_fix = self.t_s
-        self.v_null = self.vel.copy()
         self.check_covariance("GPS reset")
 
     def set_heading(self, yaw_rad: float, sigma_rad: float) -> None:
