@@ -272,17 +272,48 @@ def _one_run(scn: FlightScenario, i: int, method: str) -> dict:
     }
 
 
-def _block(per_run: list[np.ndarray], dim: int, runs: int) -> dict:
-    """Run-averaged statistic of one block against its two-sided 95 % bounds."""
+def _block(per_run: list[np.ndarray], dim: int, runs: int) -> tuple[dict, np.ndarray]:
+    """Run-averaged statistic of one block against its two-sided 95 % bounds.
+
+    Returns the summary (with the shares below and above the bounds: a
+    pessimistic filter falls below, an optimistic one above) and the per-epoch
+    average (E,).
+    """
     avg = np.nanmean(np.vstack(per_run), axis=0)
     lo, hi = chi2_bounds(dim, runs)
+    ok = np.isfinite(avg)
     return {
         "dim": dim,
         "lower": lo,
         "upper": hi,
         "mean": float(np.nanmean(avg)),
         "share_inside": share_inside(avg, dim, runs),
-    }
+        "share_below": float(np.mean(avg[ok] < lo)),
+        "share_above": float(np.mean(avg[ok] > hi)),
+    }, avg
+
+
+def nees_profile(t_s: np.ndarray, averages: dict[str, np.ndarray], window_s: float) -> list[dict]:
+    """Mean of each run-averaged NEES block over consecutive windows of ``window_s`` s.
+
+    ``averages`` maps block names to per-epoch averages (E,) at the times
+    ``t_s`` (E,). Each row holds the window ``[t0_s, t1_s)`` and the block means:
+    where in a flight a filter is optimistic or pessimistic.
+    """
+    if not (np.isfinite(window_s) and window_s > 0):
+        raise ValueError(f"profile window must be a positive number of seconds, got {window_s}")
+    rows = []
+    for t0 in np.arange(t_s[0], t_s[-1] + 1e-9, window_s):
+        m = (t_s >= t0) & (t_s < t0 + window_s)
+        if np.any(m):
+            rows.append(
+                {
+                    "t0_s": float(t0),
+                    "t1_s": float(t0 + window_s),
+                    **{k: float(np.nanmean(v[m])) for k, v in averages.items()},
+                }
+            )
+    return rows
 
 
 def consistency(
@@ -291,6 +322,7 @@ def consistency(
     method: str | None = None,
     workers: int = 2,
     progress: bool = False,
+    profile_s: float | None = None,
 ) -> dict:
     """NEES/NIS over ``runs`` Monte Carlo runs; share of epochs inside the 95 % bounds.
 
@@ -299,6 +331,8 @@ def consistency(
     the NIS (they are meant to fail it). A run whose covariance check fails
     is listed under ``diverged`` and left out of the averages (``runs`` counts
     the runs averaged): a divergence is a result to report, not a crash.
+    ``profile_s`` adds ``profile``: the NEES blocks' means over windows of that
+    many seconds (:func:`nees_profile`).
     """
     import dask
     from tqdm import tqdm
@@ -335,13 +369,18 @@ def consistency(
         "blocks": {},
     }
     dims = {"pos": 3, "vel": 3, "att": 3, "rate": 3, "all": 12}
+    averages = {}
     for name, d in dims.items():
-        out["blocks"][f"NEES {name}"] = _block([r["nees"][name] for r in results], d, runs)
+        out["blocks"][f"NEES {name}"], averages[name] = _block(
+            [r["nees"][name] for r in results], d, runs
+        )
     for key, d in (("nis_pos", 3), ("nis_vel", 3)):
-        out["blocks"][f"NIS gps {key[4:]}"] = _block([r[key] for r in results], d, runs)
+        out["blocks"][f"NIS gps {key[4:]}"] = _block([r[key] for r in results], d, runs)[0]
     nq = results[0]["rate_dim"]
     if nq:
-        out["blocks"]["NIS rate"] = _block([r["rate_nis"] for r in results], nq, runs)
+        out["blocks"]["NIS rate"] = _block([r["rate_nis"] for r in results], nq, runs)[0]
+    if profile_s is not None:
+        out["profile"] = nees_profile(results[0]["t_s"], averages, profile_s)
     out["att_rms_deg_median"] = float(np.median([r["att_rms_deg"] for r in results]))
     return out
 

@@ -378,7 +378,9 @@ def cmd_consistency(args: argparse.Namespace) -> int:
     from filters.experiments import consistency
 
     scn = _flight(args)
-    out = consistency(scn, args.runs, args.method, args.workers, progress=not args.json)
+    out = consistency(
+        scn, args.runs, args.method, args.workers, progress=not args.json, profile_s=args.profile
+    )
     if args.json:
         print(json.dumps(out, indent=2))
         return 0
@@ -389,11 +391,20 @@ def cmd_consistency(args: argparse.Namespace) -> int:
     for name, b in out["blocks"].items():
         print(
             f"  {name:14s} dim {b['dim']:2d}  bounds [{b['lower']:.2f}, {b['upper']:.2f}]  "
-            f"mean {b['mean']:7.2f}  inside {100 * b['share_inside']:5.1f} % of epochs"
+            f"mean {b['mean']:7.2f}  inside {100 * b['share_inside']:5.1f} % of epochs "
+            f"(below {100 * b['share_below']:4.1f} %, above {100 * b['share_above']:4.1f} %)"
         )
     print(f"  median attitude RMS over runs: {out['att_rms_deg_median']:.3f} deg")
     for d in out["diverged"]:
         print(f"  run {d['run']} diverged and is left out: {d['reason']}")
+    if "profile" in out:
+        print("  run-averaged NEES by window (3 dof blocks, all: 12 dof)")
+        print("    window s        pos    vel    att   rate     all")
+        for row in out["profile"]:
+            print(
+                f"    {row['t0_s']:6.1f}-{row['t1_s']:6.1f}  {row['pos']:6.2f} {row['vel']:6.2f} "
+                f"{row['att']:6.2f} {row['rate']:6.2f} {row['all']:7.2f}"
+            )
     return 0
 
 
@@ -494,6 +505,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--workers", type=int, default=2, help="dask worker processes (default: %(default)s)"
     )
     p.add_argument("--method", choices=["gm11", "none", "line", "last", "oracle"])
+    p.add_argument(
+        "--profile",
+        type=float,
+        metavar="S",
+        help="also print each NEES block's run average over windows of S seconds",
+    )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_consistency)
 

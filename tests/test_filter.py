@@ -14,6 +14,7 @@ from filters.experiments import (
     EvaluationRow,
     consistency,
     gap_before_divergence,
+    nees_profile,
     run_configuration,
 )
 from filters.pipeline import run_filter
@@ -233,7 +234,7 @@ def test_simulate_then_run_cli(tmp_path):
 
 @pytest.fixture(scope="module")
 def monte_carlo():
-    return consistency(load_flight("tactical", SHORT), runs=6, workers=2)
+    return consistency(load_flight("tactical", SHORT), runs=6, workers=2, profile_s=20.0)
 
 
 def test_consistency_small_monte_carlo(monte_carlo):
@@ -251,7 +252,22 @@ def test_consistency_small_monte_carlo(monte_carlo):
         "NIS rate",
     ):
         assert b[name]["share_inside"] >= 0.9, (name, b[name])
+        share = b[name]["share_inside"] + b[name]["share_below"] + b[name]["share_above"]
+        assert share == pytest.approx(1.0)
+    # the 60 s flight in three 20 s windows, each block's mean finite
+    assert [round(r["t0_s"]) for r in out["profile"]] == [0, 20, 40]
+    assert all(np.isfinite(r[k]) for r in out["profile"] for k in ("pos", "att", "all"))
     json.dumps(out)
+
+
+def test_nees_profile_windows():
+    """Window means of a known sequence; a non-positive window is refused by name."""
+    t = np.arange(100) * 0.1
+    rows = nees_profile(t, {"pos": t.copy()}, 5.0)
+    assert [(r["t0_s"], r["t1_s"]) for r in rows] == [(0.0, 5.0), (5.0, 10.0)]
+    assert rows[0]["pos"] == pytest.approx(2.45) and rows[1]["pos"] == pytest.approx(7.45)
+    with pytest.raises(ValueError, match="profile window"):
+        nees_profile(t, {"pos": t}, 0.0)
 
 
 def test_first_fix_after_an_outage_resets_position_and_velocity(tactical):
