@@ -20,9 +20,10 @@ rate-quadratic terms update the rate (SPEC section 2; the information a
 six-accelerometer layout lacks). The error state is injected into the nominal
 state after every update and reset to zero.
 
-Two second-order terms (SPEC section 7) are kept: the expected rotated
-specific force ``E[C f] = (I + (P_att - tr(P_att) I) / 2) C f`` and the expected
-products ``E[w_i w_j] = w_i w_j + P_ij``.
+Second-order terms (SPEC section 7) are kept: the expected rotated specific
+force ``E[C f] = (I + (P_att - tr(P_att) I) / 2) C f``, the expected products
+``E[w_i w_j] = w_i w_j + P_ij`` with their spread in R, and the mean and spread
+of the sideslip model's quadratic part (:meth:`NavFilter.sideslip_second_order`).
 """
 
 from __future__ import annotations
