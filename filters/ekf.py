@@ -77,6 +77,19 @@ class CovarianceError(RuntimeError):
     partial = None
 
 
+class LostTrackError(CovarianceError):
+    """The filter lost its tilt or rate again soon after it was reopened.
+
+    :meth:`NavFilter.reopen_attitude` is a recovery for a one-off loss (the end
+    of a long coast); needing it again within
+    ``filters.pipeline.REOPEN_MIN_INTERVAL_S`` means the estimates are not
+    coming back (a broken configuration, such as no compensation of a large
+    mounting error), and carrying on would report garbage with a covariance that
+    claims otherwise. It subclasses :class:`CovarianceError`, so whatever
+    handles a divergence handles this one (``partial`` included).
+    """
+
+
 @dataclass(frozen=True)
 class FilterNoise:
     """Noise model of the filter, in the solved-feature space.
@@ -116,6 +129,8 @@ class Counters:
     held_samples: int = 0
     sideslip_used: int = 0
     sideslip_rejected: int = 0
+    heading_resets: int = 0
+    attitude_reopens: int = 0
 
 
 @dataclass
@@ -201,6 +216,8 @@ class NavFilter:
         self._sfw = self.noise.feature_cov[3:6, 0:3]
         self._sqq = self.noise.feature_cov[6:, 6:]
         self._consec_rejects = 0
+        self._consec_slip_rejects = 0
+        self._consec_vel_rejects = 0
         self.last_rate_innovation = np.zeros(self.layout.nq)
         self._last_wdot = np.zeros(3)
         self._last_f = np.zeros(3)
@@ -608,6 +625,7 @@ class NavFilter:
         self.counters.gps_rejected_pos += int(not ok_p)
         self.counters.gps_rejected_vel += int(not ok_v)
         self._consec_rejects = 0 if ok_p else self._consec_rejects + 1
+        self._consec_vel_rejects = 0 if ok_v else self._consec_vel_rejects + 1
         if ok_p:
             self.t_last_position_fix = self.t_s
         return GpsUpdateResult(nis_p, nis_v, ok_p, ok_v, nis_h, nis_vt)
@@ -635,6 +653,7 @@ class NavFilter:
         nis, ok = self._gated_update(np.array([-(v_lat + mean2)]), r, h, self.gate1)
         self.counters.sideslip_used += int(ok)
         self.counters.sideslip_rejected += int(not ok)
+        self._consec_slip_rejects = 0 if ok else self._consec_slip_rejects + 1
         return nis
 
     def sideslip_second_order(self) -> tuple[float, float]:
@@ -682,6 +701,58 @@ class NavFilter:
         """Fixes in a row whose position was rejected (a divergence sign)."""
         return self._consec_rejects
 
+    @property
+    def consecutive_velocity_rejects(self) -> int:
+        """GPS velocities in a row that failed the gate (the tilt or rate is lost)."""
+        return self._consec_vel_rejects
+
+    def reopen_attitude(self, tilt_sigma_rad: float, rate_sigma_rps: float) -> None:
+        """Documented fallback: add tilt and rate variance the filter has lost track of.
+
+        A gyro-free array's tilt comes from integrating the rate, which comes
+        from integrating the angular acceleration; when that goes wrong beyond
+        its covariance (a long coast), the velocity it predicts soon fails every
+        GPS gate and nothing can correct it. Adding ``tilt_sigma_rad^2`` to the
+        two NED tilt variances and ``rate_sigma_rps^2`` to the three rate
+        variances (heading and everything else keep theirs; adding to the
+        diagonal keeps P positive definite) lets the next velocity fixes
+        through to relearn them. Counted as ``attitude_reopens``.
+        """
+        p = self.P.copy()
+        p[6, 6] += tilt_sigma_rad**2
+        p[7, 7] += tilt_sigma_rad**2
+        i = np.arange(RATE.start, RATE.stop)
+        p[i, i] += rate_sigma_rps**2
+        self.P = p
+        self._consec_vel_rejects = 0
+        self.counters.attitude_reopens += 1
+        self.check_covariance("attitude reopened")
+
+    @property
+    def consecutive_sideslip_rejects(self) -> int:
+        """Sideslip updates in a row that failed the gate (a heading far off the course)."""
+        return self._consec_slip_rejects
+
+    def check_heading_against_course(self, course_rad: float, sigma_rad: float) -> bool:
+        """Documented fallback: put the heading on a GPS course it contradicts.
+
+        For a vehicle flying with no sideslip the heading is the course of its
+        ground velocity. If the heading differs from ``course_rad`` by more than
+        the 1-dof gate allows (``d^2 / (P_yaw + sigma^2)``, ``d`` wrapped to
+        (-pi, pi]), :meth:`set_heading` puts it on the course with ``sigma_rad``
+        and the reset is counted. The zero-sideslip model cannot catch this
+        itself: a heading 180 deg off the course also has zero lateral velocity,
+        and a heading tens of degrees off fails every sideslip gate. Returns
+        True if the heading was reset.
+        """
+        _, _, yaw = euler_from_quat(self.q)
+        d = float(np.angle(np.exp(1j * (yaw - course_rad))))
+        if d * d <= self.gate1 * (self.P[8, 8] + sigma_rad**2):
+            return False
+        self.set_heading(course_rad, sigma_rad)
+        self.counters.heading_resets += 1
+        return True
+
     def reset_to_fix(
         self,
         pos_ned_m: np.ndarray,
@@ -719,6 +790,7 @@ class NavFilter:
         p[VEL, VEL] = np.eye(3) * float(vel_sigma_mps) ** 2
         self.P = p
         self._consec_rejects = 0
+        self._consec_vel_rejects = 0
         self.t_last_position_fix = self.t_s
         self.check_covariance("GPS reset")
 
@@ -732,6 +804,7 @@ class NavFilter:
         p[:, 8] = 0.0
         p[8, 8] = sigma_rad**2
         self.P = p
+        self._consec_slip_rejects = 0
         self.check_covariance("heading alignment")
 
     # -------------------------------------------------------------- internals

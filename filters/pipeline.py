@@ -28,7 +28,7 @@ import numpy as np
 from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 
-from filters.ekf import CovarianceError, FilterNoise, NavFilter
+from filters.ekf import CovarianceError, FilterNoise, LostTrackError, NavFilter
 from filters.state import ATT, B_F, POS, RATE, VEL
 from ngnav.compensation import _QUAD_I, _QUAD_J
 from ngnav.conventions import G0_MPS2
@@ -46,6 +46,14 @@ from ngnav.runconfig import RunConfig
 RESET_AFTER_REJECTS = 25
 #: Time constant of the angular acceleration the position states' Jacobian uses, s.
 WDOT_SMOOTHING_S = 0.05
+#: Consecutive rejected GPS velocities after which tilt and rate variance is added back.
+REOPEN_AFTER_VELOCITY_REJECTS = 10
+#: Tilt 1-sigma added back then (per NED tilt axis), rad.
+REOPEN_TILT_SIGMA_RAD = float(np.deg2rad(10.0))
+#: Rate 1-sigma added back then (per body axis), rad/s.
+REOPEN_RATE_SIGMA_RPS = float(np.deg2rad(2.0))
+#: A second reopen within this time is a divergence (:class:`filters.ekf.LostTrackError`), s.
+REOPEN_MIN_INTERVAL_S = 10.0
 #: Rate of the zero-sideslip pseudo-measurement (when configured), Hz.
 SIDESLIP_RATE_HZ = 5.0
 #: Horizontal speed above which a GPS course can set the heading, m/s.
@@ -614,6 +622,7 @@ class Pipeline:
         self._with_dr = nf.layout.n_dr > 0
         self._slip_sigma = np.deg2rad(cfg.filter.sideslip_sigma_deg)
         self._t_last_slip = -np.inf
+        self._t_last_reopen = -np.inf
         self._wd_smooth = np.zeros(3)
         self._smooth_gain = min(1.0, 1.0 / (WDOT_SMOOTHING_S * cfg.filter.rate_hz))
         self._phi_hat = np.zeros(12) if self.predictor is not None else None
@@ -805,6 +814,7 @@ class Pipeline:
         t_fix, ned, vel, sig, vacc, _ = fix
         gap_reset_s = self.cfg.filter.gps_gap_reset_s
         gap = gap_reset_s > 0 and nf.t_s - nf.t_last_position_fix > gap_reset_s
+        resets_before = nf.counters.gps_resets + nf.counters.gps_gap_resets
         res = nf.update_gps(ned, vel, sig, vacc, t_fix - nf.t_s, reset=gap)
         if self.keep_estimates:
             self._inn.append((t_fix, res.nis_pos, res.nis_vel, res.pos_accepted, res.vel_accepted))
@@ -823,6 +833,30 @@ class Pipeline:
             self._p_bound = p_bound
         if nf.consecutive_position_rejects >= RESET_AFTER_REJECTS:
             nf.reset_to_fix(ned, vel, sig, vacc)
+        elif nf.consecutive_velocity_rejects >= REOPEN_AFTER_VELOCITY_REJECTS:
+            # the velocity prediction runs away from every fix: the tilt or the rate is
+            # lost (gravity leaks through a wrong tilt). Put position and velocity on the
+            # fix and give tilt and rate back the variance the next fixes need to fix them
+            since = nf.t_s - self._t_last_reopen
+            if since < REOPEN_MIN_INTERVAL_S:
+                raise LostTrackError(
+                    f"tilt or rate lost again {since:.1f} s after it was reopened, "
+                    f"at t = {nf.t_s:.3f} s ({REOPEN_AFTER_VELOCITY_REJECTS} GPS velocities "
+                    "rejected in a row)"
+                )
+            self._t_last_reopen = nf.t_s
+            nf.reset_to_fix(ned, vel, sig, vacc)
+            nf.reopen_attitude(REOPEN_TILT_SIGMA_RAD, REOPEN_RATE_SIGMA_RPS)
+        if self._slip_sigma > 0 and not self._heading_pending:
+            # with the no-sideslip model the heading is the course: after a reset of
+            # position and velocity, or a run of rejected sideslip updates with the
+            # velocity accepted, a heading that contradicts the GPS course goes onto it
+            was_reset = nf.counters.gps_resets + nf.counters.gps_gap_resets != resets_before
+            slip_stuck = res.vel_accepted and nf.consecutive_sideslip_rejects >= RESET_AFTER_REJECTS
+            speed = float(np.hypot(vel[0], vel[1]))
+            if (was_reset or slip_stuck) and speed > COURSE_MIN_SPEED_MPS:
+                course_sigma = float(np.arctan2(3 * vacc, speed))
+                nf.check_heading_against_course(float(np.arctan2(vel[1], vel[0])), course_sigma)
         if self._heading_pending:
             speed = float(np.hypot(vel[0], vel[1]))
             if speed > COURSE_MIN_SPEED_MPS:
@@ -867,6 +901,8 @@ class Pipeline:
                 "rate updates rejected (gate)": nf.counters.rate_rejected,
                 "sideslip updates": nf.counters.sideslip_used,
                 "sideslip updates rejected (gate)": nf.counters.sideslip_rejected,
+                "heading resets to the GPS course": nf.counters.heading_resets,
+                "attitude reopened after rejected velocities": nf.counters.attitude_reopens,
                 "grey forecasts fallen back": self.n_fallbacks,
             }
         )
@@ -924,8 +960,10 @@ def run_filter(
     ValueError
         Bad configuration, a rate-aided layout, no usable GPS fix, no valid sample.
     filters.ekf.CovarianceError
-        If the covariance stops being symmetric positive definite; its
-        ``partial`` holds the estimates up to the failure.
+        If the covariance stops being symmetric positive definite, or (its
+        subclass ``LostTrackError``) the tilt or rate is lost twice within
+        ``REOPEN_MIN_INTERVAL_S``; its ``partial`` holds the estimates up to the
+        failure.
     """
     n = cfg.layout.n_sensors
     if samples.n_channels != n:

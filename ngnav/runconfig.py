@@ -72,7 +72,12 @@ class FilterSettings:
     velocity is measured as zero with a 1-sigma of
     ``speed * tan(sideslip_sigma_deg)``. It assumes the
     ground velocity lies in the body's x-z plane (calm air, or a crab angle
-    within that sigma); 0 (the default) leaves it out.
+    within that sigma); 0 (the default) leaves it out. With the model on, a
+    heading that contradicts the GPS course (beyond the 1-dof gate) is put on
+    the course after a GPS reset, or after 25 sideslip updates in a row fail
+    their gate while GPS velocity is accepted (``NavFilter.check_heading_against_course``,
+    counted as "heading resets to the GPS course"): a heading 180 deg off also
+    has zero lateral velocity, and one tens of degrees off never passes the gate.
 
     ``gps_gap_reset_s``: the first fix after this long without an accepted
     GPS position (an outage) is not fused but, if it passes the gate, puts

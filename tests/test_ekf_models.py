@@ -7,9 +7,16 @@ from hypothesis import strategies as st
 
 from filters.ekf import FilterNoise, NavFilter
 from filters.state import ATT, RATE, VEL
+from ngnav.flight import quat_from_euler
 from ngnav.frontend import ArraySolver
 from ngnav.layout import ArrayLayout, nine_accelerometer_cube
-from ngnav.rotation import dcm_from_quat, quat_from_rotvec, quat_multiply, quat_normalize
+from ngnav.rotation import (
+    dcm_from_quat,
+    euler_from_quat,
+    quat_from_rotvec,
+    quat_multiply,
+    quat_normalize,
+)
 from tests.helpers import initialise_level
 
 PAIRS = np.array([[1, 2], [0, 2], [0, 1]])
@@ -135,3 +142,47 @@ def test_rate_product_jacobian_shrinks_rates_inside_their_uncertainty():
     # |w_x| = 0.002 < sigma 0.01: its coefficient (rows 1, 2 -> columns z, y) is zero
     assert h[1, RATE][2] == 0.0 and h[2, RATE][1] == 0.0
     assert h_plain[1, RATE][2] == pytest.approx(0.002)
+
+
+@pytest.mark.parametrize(
+    ("yaw_deg", "course_deg", "reset"),
+    [
+        (180.0, 0.0, True),  # flying backwards: zero sideslip, but the wrong way round
+        (20.0, 0.0, True),  # tens of degrees off: every sideslip gate fails
+        (0.5, 0.0, False),  # inside the gate: the heading keeps its own estimate
+        (179.5, -179.5, False),  # the same 1 deg across the +-180 deg cut
+    ],
+)
+def test_heading_goes_onto_a_course_it_contradicts(yaw_deg, course_deg, reset):
+    nf, _, _ = _filter()
+    roll, pitch = np.deg2rad(3.0), np.deg2rad(-2.0)
+    nf.q = quat_from_euler(roll, pitch, np.deg2rad(yaw_deg))
+    nf.P[8, 8] = np.deg2rad(1.0) ** 2
+    sigma = np.deg2rad(0.8)
+    assert nf.check_heading_against_course(np.deg2rad(course_deg), sigma) is reset
+    r, p, y = euler_from_quat(nf.q)
+    assert (r, p) == pytest.approx((roll, pitch), abs=1e-12)  # the tilt is kept
+    if reset:
+        assert y == pytest.approx(np.deg2rad(course_deg), abs=1e-12)
+        assert nf.P[8, 8] == pytest.approx(sigma**2)
+        assert not np.any(nf.P[8, :8]) and not np.any(nf.P[8, 9:])
+        assert nf.counters.heading_resets == 1
+    else:
+        assert y == pytest.approx(np.deg2rad(yaw_deg), abs=1e-12)
+        assert nf.counters.heading_resets == 0
+
+
+def test_reopen_attitude_adds_tilt_and_rate_variance_only():
+    nf, _, _ = _filter()
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(nf.layout.n, nf.layout.n))
+    nf.P = a @ a.T * 1e-4 + np.eye(nf.layout.n) * 1e-6
+    before = nf.P.copy()
+    nf.reopen_attitude(0.2, 0.03)
+    added = nf.P - before
+    expect = np.zeros_like(added)
+    expect[6, 6] = expect[7, 7] = 0.2**2
+    expect[RATE, RATE] = np.eye(3) * 0.03**2
+    assert np.allclose(added, expect, rtol=0, atol=1e-15)
+    assert nf.counters.attitude_reopens == 1
+    assert nf.consecutive_velocity_rejects == 0
