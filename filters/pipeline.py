@@ -189,6 +189,16 @@ def _static_tilt(f_b: np.ndarray) -> tuple[float, float]:
     return roll, pitch
 
 
+def _gps_course(vel_ned_mps: np.ndarray, vel_sigma_mps: float) -> tuple[float, float] | None:
+    """GPS course (rad) and its 1-sigma ``atan(3 sigma_v / speed)``; None below the min speed."""
+    speed = float(np.hypot(vel_ned_mps[0], vel_ned_mps[1]))
+    if speed <= COURSE_MIN_SPEED_MPS:
+        return None
+    return float(np.arctan2(vel_ned_mps[1], vel_ned_mps[0])), float(
+        np.arctan2(3 * vel_sigma_mps, speed)
+    )
+
+
 class Pipeline:
     """The whole chain run as a stream: push samples and fixes, get estimates.
 
@@ -853,15 +863,13 @@ class Pipeline:
             # velocity accepted, a heading that contradicts the GPS course goes onto it
             was_reset = nf.counters.gps_resets + nf.counters.gps_gap_resets != resets_before
             slip_stuck = res.vel_accepted and nf.consecutive_sideslip_rejects >= RESET_AFTER_REJECTS
-            speed = float(np.hypot(vel[0], vel[1]))
-            if (was_reset or slip_stuck) and speed > COURSE_MIN_SPEED_MPS:
-                course_sigma = float(np.arctan2(3 * vacc, speed))
-                nf.check_heading_against_course(float(np.arctan2(vel[1], vel[0])), course_sigma)
+            course = _gps_course(vel, vacc)
+            if (was_reset or slip_stuck) and course is not None:
+                nf.check_heading_against_course(*course)
         if self._heading_pending:
-            speed = float(np.hypot(vel[0], vel[1]))
-            if speed > COURSE_MIN_SPEED_MPS:
-                course_sigma = float(np.arctan2(3 * vacc, speed))
-                nf.set_heading(float(np.arctan2(vel[1], vel[0])), course_sigma)
+            course = _gps_course(vel, vacc)
+            if course is not None:
+                nf.set_heading(*course)
                 self._heading_pending = False
 
     # --------------------------------------------------------------- output
