@@ -719,10 +719,10 @@ class NavFilter:
         through to relearn them. Counted as ``attitude_reopens``.
         """
         p = self.P.copy()
-        p[6, 6] += tilt_sigma_rad**2
-        p[7, 7] += tilt_sigma_rad**2
-        i = np.arange(RATE.start, RATE.stop)
-        p[i, i] += rate_sigma_rps**2
+        tilt = np.arange(ATT.start, ATT.start + 2)  # NED north and east tilt
+        p[tilt, tilt] += tilt_sigma_rad**2
+        rate = np.arange(RATE.start, RATE.stop)
+        p[rate, rate] += rate_sigma_rps**2
         self.P = p
         self._consec_vel_rejects = 0
         self.counters.attitude_reopens += 1
@@ -747,7 +747,8 @@ class NavFilter:
         """
         _, _, yaw = euler_from_quat(self.q)
         d = float(np.angle(np.exp(1j * (yaw - course_rad))))
-        if d * d <= self.gate1 * (self.P[8, 8] + sigma_rad**2):
+        yaw_i = ATT.start + 2  # the heading error is about NED down
+        if d * d <= self.gate1 * (self.P[yaw_i, yaw_i] + sigma_rad**2):
             return False
         self.set_heading(course_rad, sigma_rad)
         self.counters.heading_resets += 1
