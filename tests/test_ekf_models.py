@@ -2,10 +2,11 @@
 
 import numpy as np
 import pytest
+from filterpy.kalman import update as kf_update
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from filters.ekf import FilterNoise, NavFilter
+from filters.ekf import SIDESLIP_REMAINDER_UPDATES, FilterNoise, NavFilter
 from filters.state import ATT, RATE, VEL
 from ngnav.flight import quat_from_euler
 from ngnav.frontend import ArraySolver
@@ -16,6 +17,7 @@ from ngnav.rotation import (
     quat_from_rotvec,
     quat_multiply,
     quat_normalize,
+    skew,
 )
 from tests.helpers import initialise_level
 
@@ -113,6 +115,42 @@ def test_sideslip_second_order_terms_match_monte_carlo():
     # exponential below that at these sizes; measured 0.4 %)
     assert resid.var() == pytest.approx(var, rel=0.02)
     assert var > 1e-3  # coast-sized errors make the term matter (R is 1.2e-3 at 20 m/s for 0.1 deg)
+
+
+def test_sideslip_update_counts_the_correlated_remainder():
+    """R is the sigma's lateral velocity squared plus the remainder's variance counted
+    ``SIDESLIP_REMAINDER_UPDATES`` times; the remainder's mean shifts the prediction.
+
+    The reference is one filterpy update built here from the documented formula, at a
+    coast-sized covariance where the remainder dominates R.
+    """
+    nf, _, _ = _filter()
+    rng = np.random.default_rng(11)
+    nf.q = quat_from_rotvec(np.array([0.2, 0.05, 1.0]))
+    nf.vel = 20.0 * dcm_from_quat(nf.q)[:, 0]  # along the body x axis: no sideslip
+    v0 = nf.vel.copy()
+    idx = np.r_[6:9, 3:6]
+    a = rng.normal(size=(6, 6))
+    scale = np.r_[[0.01] * 3, [1.0] * 3]
+    p = np.eye(nf.layout.n) * 1e-6
+    p[np.ix_(idx, idx)] = (a @ a.T) * np.outer(scale, scale) / 6.0
+    nf.P = p
+    sigma = np.deg2rad(0.003)
+    v_lat, h = nf.sideslip_model(nf.q, nf.vel)
+    mean2, var2 = nf.sideslip_second_order()
+    r0 = (np.hypot(v0[0], v0[1]) * np.tan(sigma)) ** 2
+    assert var2 > 10 * r0  # the remainder dominates, so the factor matters
+    r = np.array([[r0 + SIDESLIP_REMAINDER_UPDATES * var2]])
+    x_ref, p_ref = kf_update(np.zeros(nf.layout.n), p.copy(), np.array([-(v_lat + mean2)]), r, h)
+    nis = nf.update_sideslip(sigma, 5.0)
+    s = float((h @ p @ h.T)[0, 0] + r[0, 0])
+    assert nis == pytest.approx(float(np.squeeze(v_lat + mean2)) ** 2 / s, rel=1e-9)
+    # the attitude reset after injection (first order, G = I - [dtheta]x / 2 on ATT)
+    g = np.eye(nf.layout.n)
+    g[ATT, ATT] -= 0.5 * skew(x_ref[ATT])
+    np.testing.assert_allclose(nf.P, g @ p_ref @ g.T, rtol=0, atol=1e-12)
+    assert nf.counters.sideslip_used == 1
+    np.testing.assert_allclose(nf.vel, v0 + x_ref[VEL], atol=1e-12)
 
 
 def test_trapezoid_is_exact_for_constant_angular_acceleration():

@@ -13,6 +13,7 @@ from filters.evaluate import run_errors, summarise
 from filters.experiments import (
     EvaluationRow,
     consistency,
+    evaluate_scenario,
     gap_before_divergence,
     nees_profile,
     run_configuration,
@@ -190,6 +191,20 @@ def test_gm11_gap_is_measured_before_no_compensation_diverges(tactical_1khz):
     # without a divergence there is nothing to window
     rows[1] = EvaluationRow("none", rows[1].summary, None, {}, None)
     assert gap_before_divergence(rows, errors) is None
+
+
+def test_gps_alone_row_when_every_filter_configuration_diverges():
+    # "none" on tactical loses its tilt twice (LostTrackError at 3.0 s); the GPS-alone
+    # row must not depend on a filter configuration that finished
+    scn = load_flight("tactical", ["run.rate_hz=200", "filter.rate_hz=100"])
+    out = evaluate_scenario(scn, 0, configurations=("none", "gps-alone"))
+    none, gps = out["rows"]
+    assert none.failure and "lost" in none.failure
+    assert gps.name == "gps-alone" and gps.failure is None
+    # GPS alone (a constant-velocity filter on the fixes) over the whole run: finite and
+    # below the raw fixes' error
+    assert 0.0 < gps.summary.horiz_rms_m < out["raw_gps_horiz_rms_m"]
+    assert "events" not in out
 
 
 def test_oracle_needs_truth(tactical):
