@@ -58,6 +58,11 @@ from ngnav.rotation import (
 #: 40 gave.
 SIDESLIP_REMAINDER_UPDATES = 4.0
 
+#: FRD body axes of the vehicle-model pseudo-measurements: lateral (sideslip) and
+#: vertical (angle of attack).
+LATERAL = 1
+VERTICAL = 2
+
 
 def _quadratic_form(y: np.ndarray, s: np.ndarray) -> float:
     """``y^T S^-1 y`` for a symmetric positive definite S (closed form for 3 x 3)."""
@@ -139,6 +144,8 @@ class Counters:
     held_samples: int = 0
     sideslip_used: int = 0
     sideslip_rejected: int = 0
+    aoa_used: int = 0
+    aoa_rejected: int = 0
     heading_resets: int = 0
     attitude_reopens: int = 0
 
@@ -640,42 +647,77 @@ class NavFilter:
             self.t_last_position_fix = self.t_s
         return GpsUpdateResult(nis_p, nis_v, ok_p, ok_v, nis_h, nis_vt)
 
-    def sideslip_model(self, q_nb: np.ndarray, vel_ned_mps: np.ndarray) -> tuple[float, np.ndarray]:
-        """Body-lateral velocity ``e_y . C^T v`` (m/s) and its Jacobian (1, n)."""
+    def body_velocity_model(
+        self, q_nb: np.ndarray, vel_ned_mps: np.ndarray, axis: int = LATERAL
+    ) -> tuple[float, np.ndarray]:
+        """Body velocity along one FRD axis, ``e_axis . C^T v`` (m/s), and its Jacobian (1, n).
+
+        ``axis`` is :data:`LATERAL` (1: the sideslip model) or :data:`VERTICAL`
+        (2: the angle-of-attack model).
+        """
         c = dcm_from_quat(q_nb)
-        row = c[:, 1]  # e_y^T C^T as a NED row
+        row = c[:, axis]  # e_axis^T C^T as a NED row
         h = np.zeros((1, self.layout.n))
         h[0, VEL] = row
         h[0, ATT] = row @ skew(vel_ned_mps)
         return float(row @ vel_ned_mps), h
 
+    def sideslip_model(self, q_nb: np.ndarray, vel_ned_mps: np.ndarray) -> tuple[float, np.ndarray]:
+        """Body-lateral velocity ``e_y . C^T v`` (m/s) and its Jacobian (1, n)."""
+        return self.body_velocity_model(q_nb, vel_ned_mps, LATERAL)
+
     def update_sideslip(self, sigma_rad: float, min_speed_mps: float) -> float | None:
         """Zero-sideslip pseudo-measurement (see ``FilterSettings.sideslip_sigma_deg``).
 
-        R is the sigma's lateral velocity squared plus the second-order remainder's
-        variance counted :data:`SIDESLIP_REMAINDER_UPDATES` times (it is correlated
-        from one update to the next); the remainder's mean is added to the prediction.
+        R is the sigma's lateral velocity squared (at the horizontal speed) plus the
+        second-order remainder's variance counted :data:`SIDESLIP_REMAINDER_UPDATES`
+        times (it is correlated from one update to the next); the remainder's mean is
+        added to the prediction.
 
-        Returns the NIS, or None below ``min_speed_mps`` (no update).
+        Returns the NIS, or None below ``min_speed_mps`` horizontal speed (no update).
         """
         speed = float(np.hypot(self.vel[0], self.vel[1]))
         if speed < min_speed_mps:
             return None
-        v_lat, h = self.sideslip_model(self.q, self.vel)
-        mean2, var2 = self.sideslip_second_order()
-        r = np.array([[(speed * np.tan(sigma_rad)) ** 2 + SIDESLIP_REMAINDER_UPDATES * var2]])
-        nis, ok = self._gated_update(np.array([-(v_lat + mean2)]), r, h, self.gate1)
+        nis, ok = self._body_velocity_update(LATERAL, speed * np.tan(sigma_rad))
         self.counters.sideslip_used += int(ok)
         self.counters.sideslip_rejected += int(not ok)
         self._consec_slip_rejects = 0 if ok else self._consec_slip_rejects + 1
         return nis
 
-    def sideslip_second_order(self) -> tuple[float, float]:
-        """Mean and variance of the sideslip model's second-order term (m/s, m^2/s^2).
+    def update_angle_of_attack(self, sigma_rad: float, min_speed_mps: float) -> float | None:
+        """Zero angle-of-attack pseudo-measurement (``FilterSettings.aoa_sigma_deg``).
 
-        With ``a = C e_y`` (the body-lateral axis, NED), the lateral velocity of the
-        true state is ``a^T exp(-[dtheta]x) (v + dv)``; beyond the linear terms of
-        :meth:`sideslip_model` it holds ``q = dtheta^T [a]x dv + dtheta^T A dtheta / 2``
+        The body-vertical velocity is measured as zero with a 1-sigma of
+        ``|v| tan(sigma_rad)``, and the same second-order terms as
+        :meth:`update_sideslip` (about the body's z axis). Returns the NIS, or
+        None below ``min_speed_mps`` horizontal speed (no update).
+        """
+        if float(np.hypot(self.vel[0], self.vel[1])) < min_speed_mps:
+            return None
+        sigma_v = float(np.linalg.norm(self.vel)) * np.tan(sigma_rad)
+        nis, ok = self._body_velocity_update(VERTICAL, sigma_v)
+        self.counters.aoa_used += int(ok)
+        self.counters.aoa_rejected += int(not ok)
+        return nis
+
+    def _body_velocity_update(self, axis: int, sigma_v_mps: float) -> tuple[float, bool]:
+        v_axis, h = self.body_velocity_model(self.q, self.vel, axis)
+        mean2, var2 = self.body_velocity_second_order(axis)
+        r = np.array([[sigma_v_mps**2 + SIDESLIP_REMAINDER_UPDATES * var2]])
+        return self._gated_update(np.array([-(v_axis + mean2)]), r, h, self.gate1)
+
+    def sideslip_second_order(self) -> tuple[float, float]:
+        """:meth:`body_velocity_second_order` of the lateral axis (the sideslip model)."""
+        return self.body_velocity_second_order(LATERAL)
+
+    def body_velocity_second_order(self, axis: int = LATERAL) -> tuple[float, float]:
+        """Mean and variance of a body-velocity model's second-order term (m/s, m^2/s^2).
+
+        With ``a = C e_axis`` (the body axis in NED), the body velocity of the
+        true state along it is ``a^T exp(-[dtheta]x) (v + dv)``; beyond the linear
+        terms of :meth:`body_velocity_model` it holds
+        ``q = dtheta^T [a]x dv + dtheta^T A dtheta / 2``
         with ``A = (a v^T + v a^T) / 2 - (a . v) I``. For a Gaussian error that is
         ``E q = tr(A P_tt) / 2 + tr([a]x P_vt)`` and ``Var q = tr(M P M P) / 2`` with
         ``M = [[A, [a]x], [[a]x^T, 0]]`` over ``(dtheta, dv)``, the second-order
@@ -685,7 +727,7 @@ class NavFilter:
         sigma, and without them the filter trusted the linearised constraint too
         far (joint velocity-attitude NEES far above its 6 dof on ``uav-survey``).
         """
-        a = dcm_from_quat(self.q)[:, 1]
+        a = dcm_from_quat(self.q)[:, axis]
         v = self.vel
         am = 0.5 * (np.outer(a, v) + np.outer(v, a)) - float(a @ v) * self._eye3
         sa = skew(a)

@@ -28,7 +28,14 @@ import numpy as np
 from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 
-from filters.ekf import CovarianceError, FilterNoise, LostTrackError, NavFilter
+from filters.ekf import (
+    LATERAL,
+    VERTICAL,
+    CovarianceError,
+    FilterNoise,
+    LostTrackError,
+    NavFilter,
+)
 from filters.state import ATT, B_F, POS, RATE, VEL
 from ngnav.compensation import _QUAD_I, _QUAD_J
 from ngnav.conventions import G0_MPS2
@@ -56,6 +63,13 @@ REOPEN_RATE_SIGMA_RPS = float(np.deg2rad(2.0))
 REOPEN_MIN_INTERVAL_S = 10.0
 #: Rate of the zero-sideslip pseudo-measurement (when configured), Hz.
 SIDESLIP_RATE_HZ = 5.0
+#: GPS velocities rejected in a row after which the vehicle model (sideslip and angle
+#: of attack) pauses until one is accepted again. A state the velocity fixes contradict
+#: has a covariance that no longer describes its errors, and a tight constraint fused
+#: through it moves the rates by what those wrong correlations say: on ``tactical``
+#: started with its pitch 15 deg off but told as 1 deg, one angle-of-attack update
+#: put the pitch right and the pitch rate 21 deg/s off (2 deg/s sigma).
+MODEL_PAUSE_AFTER_VELOCITY_REJECTS = 2
 #: Horizontal speed above which a GPS course can set the heading, m/s.
 COURSE_MIN_SPEED_MPS = 5.0
 
@@ -631,6 +645,7 @@ class Pipeline:
         nf.set_last_sample(first_row[0:3], first_row[3:6])
         self._with_dr = nf.layout.n_dr > 0
         self._slip_sigma = np.deg2rad(cfg.filter.sideslip_sigma_deg)
+        self._aoa_sigma = np.deg2rad(cfg.filter.aoa_sigma_deg)
         self._t_last_slip = -np.inf
         self._t_last_reopen = -np.inf
         self._wd_smooth = np.zeros(3)
@@ -777,20 +792,34 @@ class Pipeline:
             self._fuse_fix(fix, i1, p_bound)
             p_bound = self._p_bound
         if (
-            self._slip_sigma > 0
+            (self._slip_sigma > 0 or self._aoa_sigma > 0)
             and self.use_gps
             and nf.t_s - self._t_last_slip >= 1.0 / SIDESLIP_RATE_HZ - dt / 2
+            and nf.consecutive_velocity_rejects < MODEL_PAUSE_AFTER_VELOCITY_REJECTS
         ):
-            # the vehicle model holds with or without fixes (outages included)
+            # the vehicle model holds with or without fixes (outages included), but
+            # not while the GPS velocities contradict the state (see the constant)
             self._t_last_slip = nf.t_s
-            nis_s = nf.update_sideslip(self._slip_sigma, COURSE_MIN_SPEED_MPS)
-            if p_bound is not None and nis_s is not None and nis_s <= nf.gate1:
+            nis_s = nis_a = None
+            if self._slip_sigma > 0:
+                nis_s = nf.update_sideslip(self._slip_sigma, COURSE_MIN_SPEED_MPS)
+            if self._aoa_sigma > 0:
+                nis_a = nf.update_angle_of_attack(self._aoa_sigma, COURSE_MIN_SPEED_MPS)
+            if p_bound is not None:
                 v_true = truth.vel_ned_mps[i1]
-                _, hs = nf.sideslip_model(truth.q_nb[i1], v_true)
-                r_s = (np.hypot(v_true[0], v_true[1]) * np.tan(self._slip_sigma)) ** 2
-                _, p_bound = kf_update(
-                    np.zeros(nf.layout.n), p_bound, np.zeros(1), np.array([[r_s]]), hs
-                )
+                for axis, nis, sigma_v in (
+                    (LATERAL, nis_s, np.hypot(v_true[0], v_true[1]) * np.tan(self._slip_sigma)),
+                    (VERTICAL, nis_a, np.linalg.norm(v_true) * np.tan(self._aoa_sigma)),
+                ):
+                    if nis is not None and nis <= nf.gate1:
+                        _, hs = nf.body_velocity_model(truth.q_nb[i1], v_true, axis)
+                        _, p_bound = kf_update(
+                            np.zeros(nf.layout.n),
+                            p_bound,
+                            np.zeros(1),
+                            np.array([[sigma_v**2]]),
+                            hs,
+                        )
         self._p_bound = p_bound
         nf.check_covariance("block", full=bool(fixes) or e % self._full_check_every == 0)
         self._e = e
@@ -909,6 +938,8 @@ class Pipeline:
                 "rate updates rejected (gate)": nf.counters.rate_rejected,
                 "sideslip updates": nf.counters.sideslip_used,
                 "sideslip updates rejected (gate)": nf.counters.sideslip_rejected,
+                "angle-of-attack updates": nf.counters.aoa_used,
+                "angle-of-attack updates rejected (gate)": nf.counters.aoa_rejected,
                 "heading resets to the GPS course": nf.counters.heading_resets,
                 "attitude reopened after rejected velocities": nf.counters.attitude_reopens,
                 "grey forecasts fallen back": self.n_fallbacks,

@@ -27,7 +27,7 @@ truth to separate files.
                    yaw_deg, tilt_sigma_deg, heading_source = "config"|"gps",
                    heading_sigma_deg, rate_sigma_dps
     [filter]       rate_hz, compensation, window, gate_probability, rate_range_dps,
-                   sideslip_sigma_deg, gps_gap_reset_s, fusion_lag_s,
+                   sideslip_sigma_deg, aoa_sigma_deg, gps_gap_reset_s, fusion_lag_s,
                    hold_wdot_sigma_rps2, hold_force_sigma_mps2
 """
 
@@ -79,6 +79,16 @@ class FilterSettings:
     counted as "heading resets to the GPS course"): a heading 180 deg off also
     has zero lateral velocity, and one tens of degrees off never passes the gate.
 
+    ``aoa_sigma_deg`` > 0 adds the same model about the body's z axis: with the
+    sideslip updates (and above the same speed), the body-vertical velocity is
+    measured as zero with a 1-sigma of ``|v| tan(aoa_sigma_deg)``, i.e. the
+    ground velocity lies along the body's x axis (the land-vehicle
+    non-holonomic constraint). It holds for a vehicle flying at zero angle of
+    attack and flight-path angle equal to pitch, as ngnav's simulated flights do
+    exactly; a real aircraft flies at a few degrees of angle of attack that
+    changes with load factor and speed, and needs a sigma that covers it or,
+    better, an angle-of-attack state. 0 (the default) leaves it out.
+
     ``gps_gap_reset_s``: the first fix after this long without an accepted
     GPS position (an outage) is not fused but, if it passes the gate, puts
     position and velocity on the fix (``NavFilter.reset_to_fix``; PX4 EKF2
@@ -101,6 +111,7 @@ class FilterSettings:
     gate_probability: float = 0.9999
     rate_range_dps: float = 200.0
     sideslip_sigma_deg: float = 0.0
+    aoa_sigma_deg: float = 0.0
     gps_gap_reset_s: float = 5.0
     fusion_lag_s: float = 0.1
     hold_wdot_sigma_rps2: float = 2.0
@@ -111,10 +122,10 @@ class FilterSettings:
             raise ValueError(
                 f"filter.compensation must be one of {COMPENSATIONS}, got {self.compensation!r}"
             )
-        if not 0.0 <= self.sideslip_sigma_deg < 45.0:
-            raise ValueError(
-                f"filter.sideslip_sigma_deg must be in [0, 45), got {self.sideslip_sigma_deg}"
-            )
+        for name in ("sideslip_sigma_deg", "aoa_sigma_deg"):
+            v = getattr(self, name)
+            if not 0.0 <= v < 45.0:
+                raise ValueError(f"filter.{name} must be in [0, 45), got {v}")
         if not (np.isfinite(self.gps_gap_reset_s) and self.gps_gap_reset_s >= 0.0):
             raise ValueError(
                 f"filter.gps_gap_reset_s must be a finite number >= 0, got {self.gps_gap_reset_s}"

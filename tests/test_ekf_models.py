@@ -6,7 +6,7 @@ from filterpy.kalman import update as kf_update
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from filters.ekf import SIDESLIP_REMAINDER_UPDATES, FilterNoise, NavFilter
+from filters.ekf import LATERAL, SIDESLIP_REMAINDER_UPDATES, VERTICAL, FilterNoise, NavFilter
 from filters.state import ATT, RATE, VEL
 from ngnav.flight import quat_from_euler
 from ngnav.frontend import ArraySolver
@@ -63,27 +63,32 @@ def test_position_states_exist_only_with_a_position_sigma():
 
 @settings(max_examples=30, deadline=None)
 @given(vec3.map(lambda v: v * 0.5), vec3.map(lambda v: v * 10.0))
-def test_sideslip_jacobian_matches_finite_differences(rotvec, vel):
-    """The lateral-velocity Jacobian against central differences of the injected error."""
+def test_body_velocity_jacobians_match_finite_differences(rotvec, vel):
+    """The lateral (sideslip) and vertical (angle-of-attack) body-velocity Jacobians
+    against central differences of the injected error."""
     nf, _, _ = _filter()
     q = quat_from_rotvec(rotvec)
-    h0, h = nf.sideslip_model(q, vel)
-    assert h0 == pytest.approx(dcm_from_quat(q)[:, 1] @ vel)
-    eps = 1e-6
-    for k in range(3):
-        d = np.zeros(3)
-        d[k] = eps
-        # error convention: truth = exp(dtheta) * estimate, v_true = v + dv
-        up = nf.sideslip_model(quat_multiply(quat_from_rotvec(d), q), vel)[0]
-        dn = nf.sideslip_model(quat_multiply(quat_from_rotvec(-d), q), vel)[0]
-        assert h[0, ATT][k] == pytest.approx((up - dn) / (2 * eps), abs=1e-6)
-        up = nf.sideslip_model(q, vel + d)[0]
-        dn = nf.sideslip_model(q, vel - d)[0]
-        assert h[0, VEL][k] == pytest.approx((up - dn) / (2 * eps), abs=1e-6)
+    assert nf.sideslip_model(q, vel)[0] == pytest.approx(dcm_from_quat(q)[:, 1] @ vel)
+    for axis in (LATERAL, VERTICAL):
+        h0, h = nf.body_velocity_model(q, vel, axis)
+        assert h0 == pytest.approx(dcm_from_quat(q)[:, axis] @ vel)
+        eps = 1e-6
+        for k in range(3):
+            d = np.zeros(3)
+            d[k] = eps
+            # error convention: truth = exp(dtheta) * estimate, v_true = v + dv
+            up = nf.body_velocity_model(quat_multiply(quat_from_rotvec(d), q), vel, axis)[0]
+            dn = nf.body_velocity_model(quat_multiply(quat_from_rotvec(-d), q), vel, axis)[0]
+            assert h[0, ATT][k] == pytest.approx((up - dn) / (2 * eps), abs=1e-6)
+            up = nf.body_velocity_model(q, vel + d, axis)[0]
+            dn = nf.body_velocity_model(q, vel - d, axis)[0]
+            assert h[0, VEL][k] == pytest.approx((up - dn) / (2 * eps), abs=1e-6)
 
 
-def test_sideslip_second_order_terms_match_monte_carlo():
-    """Mean and variance of what the linear sideslip model leaves out, against sampling.
+@pytest.mark.parametrize("axis", [LATERAL, VERTICAL])
+def test_body_velocity_second_order_terms_match_monte_carlo(axis):
+    """Mean and variance of what the linear sideslip (lateral) and angle-of-attack
+    (vertical) models leave out, against sampling.
 
     Errors drawn from the filter's own covariance (correlated attitude and velocity,
     coast-sized) are injected exactly (``q_true = exp(dtheta) q``); the true lateral
@@ -101,12 +106,14 @@ def test_sideslip_second_order_terms_match_monte_carlo():
     p = np.eye(nf.layout.n) * 1e-6
     p[np.ix_(idx, idx)] = px
     nf.P = p
-    y0, h = nf.sideslip_model(nf.q, nf.vel)
-    mean, var = nf.sideslip_second_order()
+    y0, h = nf.body_velocity_model(nf.q, nf.vel, axis)
+    mean, var = nf.body_velocity_second_order(axis)
+    if axis == LATERAL:
+        assert (mean, var) == nf.sideslip_second_order()
     n = 200_000
     x = rng.multivariate_normal(np.zeros(6), px, n)
     dq = np.array([quat_from_rotvec(d) for d in x[:, 0:3]])
-    lat = np.array([dcm_from_quat(quat_multiply(d, nf.q))[:, 1] for d in dq])
+    lat = np.array([dcm_from_quat(quat_multiply(d, nf.q))[:, axis] for d in dq])
     y_true = np.einsum("ki,ki->k", lat, nf.vel + x[:, 3:6])
     resid = y_true - (y0 + x[:, 3:6] @ h[0, VEL] + x[:, 0:3] @ h[0, ATT])
     sd = np.sqrt(var)
@@ -117,8 +124,10 @@ def test_sideslip_second_order_terms_match_monte_carlo():
     assert var > 1e-3  # coast-sized errors make the term matter (R is 1.2e-3 at 20 m/s for 0.1 deg)
 
 
-def test_sideslip_update_counts_the_correlated_remainder():
-    """R is the sigma's lateral velocity squared plus the remainder's variance counted
+@pytest.mark.parametrize("axis", [LATERAL, VERTICAL])
+def test_body_velocity_update_counts_the_correlated_remainder(axis):
+    """R is the sigma's body velocity squared (horizontal speed for the sideslip, 3-D
+    speed for the angle of attack) plus the remainder's variance counted
     ``SIDESLIP_REMAINDER_UPDATES`` times; the remainder's mean shifts the prediction.
 
     The reference is one filterpy update built here from the documented formula, at a
@@ -136,20 +145,25 @@ def test_sideslip_update_counts_the_correlated_remainder():
     p[np.ix_(idx, idx)] = (a @ a.T) * np.outer(scale, scale) / 6.0
     nf.P = p
     sigma = np.deg2rad(0.003)
-    v_lat, h = nf.sideslip_model(nf.q, nf.vel)
-    mean2, var2 = nf.sideslip_second_order()
-    r0 = (np.hypot(v0[0], v0[1]) * np.tan(sigma)) ** 2
+    v_lat, h = nf.body_velocity_model(nf.q, nf.vel, axis)
+    mean2, var2 = nf.body_velocity_second_order(axis)
+    speed = np.hypot(v0[0], v0[1]) if axis == LATERAL else np.linalg.norm(v0)
+    r0 = (speed * np.tan(sigma)) ** 2
     assert var2 > 10 * r0  # the remainder dominates, so the factor matters
     r = np.array([[r0 + SIDESLIP_REMAINDER_UPDATES * var2]])
     x_ref, p_ref = kf_update(np.zeros(nf.layout.n), p.copy(), np.array([-(v_lat + mean2)]), r, h)
-    nis = nf.update_sideslip(sigma, 5.0)
+    if axis == LATERAL:
+        nis = nf.update_sideslip(sigma, 5.0)
+    else:
+        nis = nf.update_angle_of_attack(sigma, 5.0)
     s = float((h @ p @ h.T)[0, 0] + r[0, 0])
     assert nis == pytest.approx(float(np.squeeze(v_lat + mean2)) ** 2 / s, rel=1e-9)
     # the attitude reset after injection (first order, G = I - [dtheta]x / 2 on ATT)
     g = np.eye(nf.layout.n)
     g[ATT, ATT] -= 0.5 * skew(x_ref[ATT])
     np.testing.assert_allclose(nf.P, g @ p_ref @ g.T, rtol=0, atol=1e-12)
-    assert nf.counters.sideslip_used == 1
+    used = (nf.counters.sideslip_used, nf.counters.aoa_used)
+    assert used == ((1, 0) if axis == LATERAL else (0, 1))
     np.testing.assert_allclose(nf.vel, v0 + x_ref[VEL], atol=1e-12)
 
 

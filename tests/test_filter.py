@@ -359,12 +359,22 @@ def test_a_long_gap_of_held_samples_widens_the_covariance(tactical):
     assert (
         res.counts["gps positions rejected (gate)"] == ref.counts["gps positions rejected (gate)"]
     )
-    # the same gap without the hold model: the filter turns grossly overconfident,
-    # loses its tilt, and loses it again after the reopen (before the reopen existed
-    # its attitude NEES passed 100x the 99.9 % point here)
+    # the same gap without the hold model: the filter turns grossly overconfident
+    # (measured: worst attitude NEES 33 407 and 13 GPS velocities rejected; 6.1 and
+    # none with it)
     off = replace(sim.config.filter, hold_wdot_sigma_rps2=0.0, hold_force_sigma_mps2=0.0)
+    worst_off, res_off = worst_att_nees(replace(sim.config, filter=off))
+    assert worst_off > 100 * chi2.ppf(0.999, 3)
+    assert res_off.counts["gps velocities rejected (gate)"] > 0
+    # without the vehicle model (sideslip and angle of attack) nothing else holds the
+    # attitude through the gap: with the hold model it stays consistent, without it
+    # the filter loses its tilt, and loses it again after the reopen (before the reopen
+    # existed its attitude NEES passed 100x the 99.9 % point here)
+    no_model = {"sideslip_sigma_deg": 0.0, "aoa_sigma_deg": 0.0}
+    worst_nm, _ = worst_att_nees(replace(sim.config, filter=replace(sim.config.filter, **no_model)))
+    assert worst_nm < chi2.ppf(0.999, 3)
     with pytest.raises(LostTrackError, match="lost again"):
-        worst_att_nees(replace(sim.config, filter=off))
+        worst_att_nees(replace(sim.config, filter=replace(off, **no_model)))
 
 
 def test_a_lost_tilt_is_reopened_and_relearned_from_gps_velocity(tactical):
@@ -372,7 +382,11 @@ def test_a_lost_tilt_is_reopened_and_relearned_from_gps_velocity(tactical):
     predicts fails every GPS gate, and without the fallback nothing could correct
     it. After 10 rejected velocities the filter puts position and velocity on the
     fix and adds tilt and rate variance back (``NavFilter.reopen_attitude``); the
-    next fixes relearn the tilt, and from then on it is inside its covariance."""
+    next fixes relearn the tilt, and from then on it is inside its covariance.
+    It also needs the vehicle model's pause while velocities are rejected
+    (``MODEL_PAUSE_AFTER_VELOCITY_REJECTS``): without it an angle-of-attack update
+    fused through the wrong covariance put the pitch rate 21 deg/s off and the
+    filter lost its tilt again 1.6 s after the reopen."""
     from dataclasses import replace
 
     cfg = tactical.config
