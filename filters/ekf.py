@@ -64,6 +64,21 @@ LATERAL = 1
 VERTICAL = 2
 
 
+def _constraint_axes(axis: int, aoa_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """Constraint axis ``n_b`` and the wind x axis ``t_b`` (FRD) at angle of attack ``aoa_rad``.
+
+    :data:`LATERAL`: ``n_b = e_y``; :data:`VERTICAL`: ``n_b = [-sin a, 0, cos a]``.
+    ``t_b = [cos a, 0, sin a]`` either way (the body x axis at zero).
+    """
+    ca, sa = np.cos(aoa_rad), np.sin(aoa_rad)
+    t_b = np.array([ca, 0.0, sa])
+    if axis == LATERAL:
+        return np.array([0.0, 1.0, 0.0]), t_b
+    if axis == VERTICAL:
+        return np.array([-sa, 0.0, ca]), t_b
+    raise ValueError(f"axis must be LATERAL (1) or VERTICAL (2), got {axis}")
+
+
 def _quadratic_form(y: np.ndarray, s: np.ndarray) -> float:
     """``y^T S^-1 y`` for a symmetric positive definite S (closed form for 3 x 3)."""
     if y.shape[0] != 3:
@@ -186,6 +201,11 @@ class NavFilter:
         ``noise.position_sigma_m`` they switch on the ``DR`` states.
     solve_matrix : array (k, N), optional
         The solve operator ``S`` (solved features from channel outputs).
+    aoa_prior_sigma_rad : float
+        > 0 carries the angle of attack as a state (``AOA``) with this prior
+        1-sigma, rad; 0 (the default) assumes zero angle of attack.
+    aoa_rw_rad_rts : float
+        Random walk of the angle-of-attack state, rad/sqrt(s).
     """
 
     noise: FilterNoise
@@ -195,6 +215,8 @@ class NavFilter:
     rate_measurement: bool = True
     sensor_axes_b: np.ndarray | None = None
     solve_matrix: np.ndarray | None = None
+    aoa_prior_sigma_rad: float = 0.0
+    aoa_rw_rad_rts: float = 0.0
     counters: Counters = field(default_factory=Counters)
 
     def __post_init__(self) -> None:
@@ -204,7 +226,11 @@ class NavFilter:
             if self.sensor_axes_b is None or self.solve_matrix is None:
                 raise ValueError("position states need sensor_axes_b and solve_matrix")
             n_dr = 3 * self.sensor_axes_b.shape[0]
-        self.layout = StateLayout(self.quad_pairs.shape[0], n_dr)
+        for name in ("aoa_prior_sigma_rad", "aoa_rw_rad_rts"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0.0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v}")
+        self.layout = StateLayout(self.quad_pairs.shape[0], n_dr, int(self.aoa_prior_sigma_rad > 0))
         n = self.layout.n
         k = 6 + self.layout.nq
         for name in ("feature_cov", "bias_prior_cov", "bias_rw_cov"):
@@ -225,6 +251,7 @@ class NavFilter:
         self.w = np.zeros(3)
         self.bias = np.zeros(6 + self.layout.nq)
         self.dr = np.zeros(n_dr)
+        self.aoa = 0.0
         self._eye = np.eye(n)
         self._eye3 = np.eye(3)
         self._g = gravity_n_mps2()
@@ -258,8 +285,13 @@ class NavFilter:
         vel_sigma_mps: np.ndarray,
         att_sigma_rad: np.ndarray,
         rate_sigma_rps: float,
+        aoa_rad: float = 0.0,
     ) -> None:
-        """Set the nominal state and a diagonal prior (biases from ``noise.bias_prior_cov``)."""
+        """Set the nominal state and a diagonal prior (biases from ``noise.bias_prior_cov``).
+
+        ``aoa_rad`` is the angle of attack's prior mean (used with the ``AOA`` state;
+        its 1-sigma is ``aoa_prior_sigma_rad``).
+        """
         self.t_s = float(t_s)
         self.pos = np.array(pos_ned_m, dtype=float)
         self.vel = np.array(vel_ned_mps, dtype=float)
@@ -276,6 +308,9 @@ class NavFilter:
         dr = self.layout.dr
         p[dr, dr] = np.eye(self.layout.n_dr) * self.noise.position_sigma_m**2
         self.dr = np.zeros(self.layout.n_dr)
+        self.aoa = float(aoa_rad) if self.layout.n_aoa else 0.0
+        ia = self.layout.aoa
+        p[ia, ia] = self.aoa_prior_sigma_rad**2
         self.P = p
         self.x = np.zeros(self.layout.n)
         self.t_last_position_fix = self.t_s
@@ -457,6 +492,8 @@ class NavFilter:
         q[:12, :12] = q12
         bs = self.layout.bias
         q[bs, bs] = self.noise.bias_rw_cov * t
+        ia = self.layout.aoa
+        q[ia, ia] = self.aoa_rw_rad_rts**2 * t
         return phi, q
 
     def _q12_body(self, k: int, dt: float) -> np.ndarray:
@@ -648,18 +685,24 @@ class NavFilter:
         return GpsUpdateResult(nis_p, nis_v, ok_p, ok_v, nis_h, nis_vt)
 
     def body_velocity_model(
-        self, q_nb: np.ndarray, vel_ned_mps: np.ndarray, axis: int = LATERAL
+        self, q_nb: np.ndarray, vel_ned_mps: np.ndarray, axis: int = LATERAL, aoa_rad: float = 0.0
     ) -> tuple[float, np.ndarray]:
-        """Body velocity along one FRD axis, ``e_axis . C^T v`` (m/s), and its Jacobian (1, n).
+        """Velocity along a body constraint axis, ``n_b . C^T v`` (m/s), and its Jacobian (1, n).
 
-        ``axis`` is :data:`LATERAL` (1: the sideslip model) or :data:`VERTICAL`
-        (2: the angle-of-attack model).
+        ``axis`` is :data:`LATERAL` (``n_b = e_y``: the sideslip model) or
+        :data:`VERTICAL` (``n_b = [-sin alpha, 0, cos alpha]``, the wind-normal axis at
+        angle of attack ``aoa_rad``: the angle-of-attack model; ``e_z`` at zero). With
+        the ``AOA`` state the vertical model's Jacobian includes
+        ``d/dalpha = -t_b . C^T v``, ``t_b = [cos alpha, 0, sin alpha]`` (the wind x axis).
         """
         c = dcm_from_quat(q_nb)
-        row = c[:, axis]  # e_axis^T C^T as a NED row
+        n_b, t_b = _constraint_axes(axis, aoa_rad)
+        row = c @ n_b  # n_b^T C^T as a NED row
         h = np.zeros((1, self.layout.n))
         h[0, VEL] = row
         h[0, ATT] = row @ skew(vel_ned_mps)
+        if axis == VERTICAL and self.layout.n_aoa:
+            h[0, self.layout.aoa] = -float((c @ t_b) @ vel_ned_mps)
         return float(row @ vel_ned_mps), h
 
     def sideslip_model(self, q_nb: np.ndarray, vel_ned_mps: np.ndarray) -> tuple[float, np.ndarray]:
@@ -686,12 +729,13 @@ class NavFilter:
         return nis
 
     def update_angle_of_attack(self, sigma_rad: float, min_speed_mps: float) -> float | None:
-        """Zero angle-of-attack pseudo-measurement (``FilterSettings.aoa_sigma_deg``).
+        """Angle-of-attack pseudo-measurement (``FilterSettings.aoa_sigma_deg``).
 
-        The body-vertical velocity is measured as zero with a 1-sigma of
-        ``|v| tan(sigma_rad)``, and the same second-order terms as
-        :meth:`update_sideslip` (about the body's z axis). Returns the NIS, or
-        None below ``min_speed_mps`` horizontal speed (no update).
+        The velocity along the wind-normal axis ``[-sin alpha, 0, cos alpha]`` (FRD;
+        ``alpha`` the ``AOA`` state, or zero without it: the body z axis) is measured
+        as zero with a 1-sigma of ``|v| tan(sigma_rad)``, and the same second-order
+        terms as :meth:`update_sideslip`. Returns the NIS, or None below
+        ``min_speed_mps`` horizontal speed (no update).
         """
         if float(np.hypot(self.vel[0], self.vel[1])) < min_speed_mps:
             return None
@@ -702,7 +746,7 @@ class NavFilter:
         return nis
 
     def _body_velocity_update(self, axis: int, sigma_v_mps: float) -> tuple[float, bool]:
-        v_axis, h = self.body_velocity_model(self.q, self.vel, axis)
+        v_axis, h = self.body_velocity_model(self.q, self.vel, axis, self.aoa)
         mean2, var2 = self.body_velocity_second_order(axis)
         r = np.array([[sigma_v_mps**2 + SIDESLIP_REMAINDER_UPDATES * var2]])
         return self._gated_update(np.array([-(v_axis + mean2)]), r, h, self.gate1)
@@ -714,32 +758,42 @@ class NavFilter:
     def body_velocity_second_order(self, axis: int = LATERAL) -> tuple[float, float]:
         """Mean and variance of a body-velocity model's second-order term (m/s, m^2/s^2).
 
-        With ``a = C e_axis`` (the body axis in NED), the body velocity of the
-        true state along it is ``a^T exp(-[dtheta]x) (v + dv)``; beyond the linear
-        terms of :meth:`body_velocity_model` it holds
+        With ``a = C n_b`` (the constraint axis in NED; :meth:`body_velocity_model`),
+        the velocity of the true state along it is ``a^T exp(-[dtheta]x) (v + dv)``;
+        beyond the linear terms it holds
         ``q = dtheta^T [a]x dv + dtheta^T A dtheta / 2``
-        with ``A = (a v^T + v a^T) / 2 - (a . v) I``. For a Gaussian error that is
-        ``E q = tr(A P_tt) / 2 + tr([a]x P_vt)`` and ``Var q = tr(M P M P) / 2`` with
-        ``M = [[A, [a]x], [[a]x^T, 0]]`` over ``(dtheta, dv)``, the second-order
+        with ``A = (a v^T + v a^T) / 2 - (a . v) I``. With the ``AOA`` state the
+        vertical axis also turns, ``n_b(alpha + da) = n_b - da t_b - da^2 n_b / 2``
+        (``b = C t_b``), which adds ``-da b^T ([v]x dtheta + dv) - da^2 (a . v) / 2``.
+        Written ``q = x^T M x / 2`` over ``x = (dtheta, dv[, da])``, a Gaussian error
+        gives ``E q = tr(M P) / 2`` and ``Var q = tr(M P M P) / 2``, the second-order
         filter's terms (as for the rate products). They are negligible while GPS
         holds velocity and attitude; at the end of a long coast (metres per second
         of velocity error, tenths of a degree of tilt) they exceed a tight sideslip
         sigma, and without them the filter trusted the linearised constraint too
         far (joint velocity-attitude NEES far above its 6 dof on ``uav-survey``).
         """
-        a = dcm_from_quat(self.q)[:, axis]
+        c = dcm_from_quat(self.q)
+        n_b, t_b = _constraint_axes(axis, self.aoa)
+        a = c @ n_b
         v = self.vel
-        am = 0.5 * (np.outer(a, v) + np.outer(v, a)) - float(a @ v) * self._eye3
+        with_aoa = axis == VERTICAL and self.layout.n_aoa == 1
+        d = 7 if with_aoa else 6
+        m = np.zeros((d, d))
+        m[0:3, 0:3] = 0.5 * (np.outer(a, v) + np.outer(v, a)) - float(a @ v) * self._eye3
         sa = skew(a)
-        m = np.zeros((6, 6))
-        m[0:3, 0:3] = am
         m[0:3, 3:6] = sa
         m[3:6, 0:3] = sa.T
         idx = np.r_[6:9, 3:6]  # (dtheta, dv)
+        if with_aoa:
+            b = c @ t_b
+            m[6, 0:3] = m[0:3, 6] = -(b @ skew(v))
+            m[6, 3:6] = m[3:6, 6] = -b
+            m[6, 6] = -float(a @ v)
+            idx = np.r_[idx, self.layout.aoa.start]
         px = self.P[np.ix_(idx, idx)]
-        mean = 0.5 * float(np.trace(am @ px[0:3, 0:3])) + float(np.trace(sa @ px[3:6, 0:3]))
         mp = m @ px
-        return mean, 0.5 * float(np.sum(mp * mp.T))
+        return 0.5 * float(np.trace(mp)), 0.5 * float(np.sum(mp * mp.T))
 
     def _gated_update(
         self, y: np.ndarray, r: np.ndarray, h: np.ndarray, gate: float | None = None
@@ -801,12 +855,16 @@ class NavFilter:
         and a heading tens of degrees off fails every sideslip gate. Returns
         True if the heading was reset.
         """
-        _, _, yaw = euler_from_quat(self.q)
-        d = float(np.angle(np.exp(1j * (yaw - course_rad))))
+        # the course the attitude implies: the horizontal direction of the wind x
+        # axis (the body x axis without the AOA state, whose heading is the yaw)
+        _, t_b = _constraint_axes(VERTICAL, self.aoa)
+        x_n = dcm_from_quat(self.q) @ t_b
+        d = float(np.angle(np.exp(1j * (np.arctan2(x_n[1], x_n[0]) - course_rad))))
         yaw_i = ATT.start + 2  # the heading error is about NED down
         if d * d <= self.gate1 * (self.P[yaw_i, yaw_i] + sigma_rad**2):
             return False
-        self.set_heading(course_rad, sigma_rad)
+        _, _, yaw = euler_from_quat(self.q)
+        self.set_heading(yaw - d, sigma_rad)  # a turn about NED down by -d
         self.counters.heading_resets += 1
         return True
 
@@ -874,6 +932,8 @@ class NavFilter:
         self.w = self.w + dx[RATE]
         self.bias = self.bias + dx[self.layout.bias]
         self.dr = self.dr + dx[self.layout.dr]
+        if self.layout.n_aoa:
+            self.aoa += float(dx[self.layout.aoa][0])
         # reset Jacobian of the attitude error (first order): G = I except G[ATT, ATT]
         ga = np.eye(3) - 0.5 * skew(dth)
         p = self.P

@@ -535,6 +535,8 @@ class Pipeline:
             cfg.filter.gate_probability,
             sensor_axes_b=cfg.layout.axes_b,
             solve_matrix=self._smat,
+            aoa_prior_sigma_rad=float(np.deg2rad(cfg.filter.aoa_prior_sigma_deg)),
+            aoa_rw_rad_rts=float(np.deg2rad(cfg.filter.aoa_rw_deg_rts)),
         )
         self.nf = nf
         nq = self._pairs.shape[0]
@@ -592,6 +594,7 @@ class Pipeline:
             f_vacc,
             att_sigma,
             np.deg2rad(ini.rate_sigma_dps),
+            aoa_rad=float(np.deg2rad(cfg.filter.aoa_prior_deg)),
         )
         if ini.alignment == "static":
             # the levelled attitude absorbs the horizontal force bias: correlate them exactly
@@ -812,7 +815,10 @@ class Pipeline:
                     (VERTICAL, nis_a, np.linalg.norm(v_true) * np.tan(self._aoa_sigma)),
                 ):
                     if nis is not None and nis <= nf.gate1:
-                        _, hs = nf.body_velocity_model(truth.q_nb[i1], v_true, axis)
+                        # the truth's angle of attack: the body x-z direction of its velocity
+                        v_b = dcm_from_quat(truth.q_nb[i1]).T @ v_true
+                        aoa_true = float(np.arctan2(v_b[2], v_b[0])) if nf.layout.n_aoa else 0.0
+                        _, hs = nf.body_velocity_model(truth.q_nb[i1], v_true, axis, aoa_true)
                         _, p_bound = kf_update(
                             np.zeros(nf.layout.n),
                             p_bound,

@@ -13,6 +13,7 @@ B_WDOT     3      bias of the solved angular acceleration, FRD, rad/s^2
 B_F        3      bias of the solved specific force, FRD, m/s^2
 B_QUAD     nq     bias of the solved rate-quadratic terms, rad^2/s^2
 DR         3N     residual sensor-position errors ``dr_i``, FRD, m (optional)
+AOA        1      angle-of-attack error, rad (optional)
 =========  =====  ==============================================================
 
 Why these biases: each channel's bias ``beta_i`` enters the solved features as
@@ -36,6 +37,16 @@ as white noise they leave the filter overconfident. Carried as states they are
 exact (linear in ``dr``) and estimated in flight: the in-flight part of the
 position calibration. The block is present when the configuration gives a
 nonzero position uncertainty (``position_sigma_m``).
+
+Why ``AOA``: an aircraft's velocity leaves its body x axis by the angle of
+attack, which its lift needs and which grows with load factor and falls with
+speed. The vehicle model (``FilterSettings.aoa_sigma_deg``) measures the
+velocity along the wind-normal axis ``[-sin alpha, 0, cos alpha]`` (FRD) as
+zero; with the angle of attack a state, that ties the pitch to the flight path
+*plus* an angle the filter learns while GPS holds the velocity and carries,
+with a random walk (``FilterSettings.aoa_rw_deg_rts``), through an outage.
+Without the state the model assumes zero angle of attack, which only a vehicle
+flying along its body axis keeps. Present when ``aoa_prior_sigma_deg`` > 0.
 """
 
 from __future__ import annotations
@@ -61,20 +72,31 @@ def b_quad(nq: int) -> slice:
 
 @dataclass(frozen=True)
 class StateLayout:
-    """Error-state size: ``nq`` solved rate-quadratic terms, ``n_dr`` position states."""
+    """Error-state size: ``nq`` rate-quadratic terms, ``n_dr`` position states, ``n_aoa`` (0/1)."""
 
     nq: int
     n_dr: int = 0
+    n_aoa: int = 0
+
+    def __post_init__(self) -> None:
+        if self.n_aoa not in (0, 1):
+            raise ValueError(f"n_aoa must be 0 or 1, got {self.n_aoa}")
 
     @property
     def n(self) -> int:
         """Total error-state size."""
-        return N_BASE + self.nq + self.n_dr
+        return N_BASE + self.nq + self.n_dr + self.n_aoa
 
     @property
     def dr(self) -> slice:
         """The sensor-position error block (3N or empty)."""
         return slice(N_BASE + self.nq, N_BASE + self.nq + self.n_dr)
+
+    @property
+    def aoa(self) -> slice:
+        """The angle-of-attack error (one state or empty)."""
+        start = N_BASE + self.nq + self.n_dr
+        return slice(start, start + self.n_aoa)
 
     @property
     def bias(self) -> slice:

@@ -1,20 +1,29 @@
 """Exact truth of simulated flights: attitude, rate, rate derivative, position, velocity.
 
-A flight is described by three smooth profiles, bank ``phi``, pitch ``theta``
-and airspeed ``V``, each a sum of minimum-jerk transitions (continuous up to
-the second derivative). The body flies along its x axis (no sideslip, no angle
-of attack), so ``v_n = C_nb [V, 0, 0]``. The heading rate is that of a
-coordinated turn, ``psi_dot = g0 tan(phi) / V`` (zero below ``taxi_speed_mps``),
-unless a transition asks for an explicit yaw rate.
+A flight is described by four smooth profiles, bank ``phi``, flight-path
+pitch ``theta``, airspeed ``V`` and angle of attack ``alpha``, each a sum of
+minimum-jerk transitions (continuous up to the second derivative). The first
+three define the wind frame W (x along the velocity, no sideslip: coordinated
+flight in calm air), so ``v_n = C_nw [V, 0, 0]``; the body is the wind frame
+pitched nose-up by ``alpha`` about their common y axis, ``C_nb = C_nw R_y(alpha)``,
+so the body sees its velocity as ``V [cos alpha, 0, sin alpha]``. The heading
+rate is that of a coordinated turn, ``psi_dot = g0 tan(phi) / V`` (zero below
+``taxi_speed_mps``), unless a transition asks for an explicit yaw rate.
 
 Everything the array and the filter see follows analytically from the profiles
 and their derivatives:
 
-- ``q_nb`` from the ZYX Euler angles ``(psi, theta, phi)``;
-- ``omega_b`` from the Euler-rate kinematics, and ``omega_dot_b`` from their
-  exact time derivative (never a finite difference of sampled attitude);
-- ``a_b = [V_dot, omega_z V, -omega_y V]`` (the derivative of ``C_nb v_b``),
-  ``f_b = a_b - C_bn g_n``.
+- ``q_nw`` from the ZYX Euler angles ``(psi, theta, phi)``, ``q_nb = q_nw q_y(alpha)``;
+- ``omega_w`` from the Euler-rate kinematics and ``omega_dot_w`` from their exact
+  time derivative (never a finite difference of sampled attitude);
+  ``omega_b = C_bw omega_w + [0, alpha_dot, 0]`` and
+  ``omega_dot_b = C_bw omega_dot_w + (dC_bw/dt) omega_w + [0, alpha_ddot, 0]``;
+- ``a_w = [V_dot, omega_wz V, -omega_wy V]`` (the derivative of ``C_nw [V, 0, 0]``),
+  ``f_b = C_bw (a_w - C_wn g_n)``.
+
+A real aircraft flies at an angle of attack that grows with its load factor
+and falls with its speed (lift ``n m g = rho V^2 S C_La alpha / 2``); the
+shipped scenarios schedule ``alpha`` per leg from that law (see their TOML).
 
 Heading and position, the two integrals, come from three-point Gauss-Legendre
 quadrature of the same analytic derivatives over every sample interval (and,
@@ -95,16 +104,20 @@ class FlightPlan:
     duration_s : float
         Length of the flight, s.
     bank, pitch, speed : Profile
-        Roll angle (rad), pitch angle (rad) and airspeed along body x (m/s).
+        Roll angle (rad) and pitch angle (rad) of the wind frame (the pitch is the
+        flight-path angle), and airspeed (m/s).
     yaw_rate : Profile
         Extra heading rate (rad/s) on top of the coordinated-turn rate;
         used to turn on the ground.
     heading0_rad : float
-        Initial heading, rad from north.
+        Initial heading (course), rad from north.
     taxi_speed_mps : float
         Below this speed the coordinated-turn heading rate is switched off
         (it tends to infinity as V -> 0); the switch is smooth (a min-jerk
         blend over the speed band ``[0.5, 1] * taxi_speed_mps``).
+    aoa : Profile
+        Angle of attack (rad): the body's nose-up pitch from the velocity, about
+        body y. Zero by default (the body flies along its x axis).
     """
 
     duration_s: float
@@ -114,6 +127,7 @@ class FlightPlan:
     yaw_rate: Profile = Profile(0.0)
     heading0_rad: float = 0.0
     taxi_speed_mps: float = 2.0
+    aoa: Profile = Profile(0.0)
 
     def heading_rate(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Heading rate (rad/s) and its derivative (rad/s^2) at the times (T,)."""
@@ -282,10 +296,40 @@ def fly(plan: FlightPlan, rate_hz: float) -> FlightTruth:
         raise ValueError("pitch reaches +-89 deg: the Euler-angle flight description is singular")
     v, dv, _ = plan.speed.evaluate(t)
     dpsi, ddpsi = plan.heading_rate(t)
-    w, wd = euler_rates_to_body((phi, th, psi), (dphi, dth, dpsi), (ddphi, ddth, ddpsi))
-    q = quat_from_euler(phi, th, psi)
-    c_nb = dcm_from_quat(q)
-    vel = v[:, None] * c_nb[:, :, 0]
-    a_b = np.stack([dv, w[:, 2] * v, -w[:, 1] * v], axis=-1)
-    g_b = np.einsum("tji,j->ti", c_nb, gravity_n_mps2())
-    return FlightTruth(t, pos, vel, q, w, wd, a_b - g_b)
+    w_w, wd_w = euler_rates_to_body((phi, th, psi), (dphi, dth, dpsi), (ddphi, ddth, ddpsi))
+    q_nw = quat_from_euler(phi, th, psi)
+    c_nw = dcm_from_quat(q_nw)
+    vel = v[:, None] * c_nw[:, :, 0]
+    a_w = np.stack([dv, w_w[:, 2] * v, -w_w[:, 1] * v], axis=-1)
+    f_w = a_w - np.einsum("tji,j->ti", c_nw, gravity_n_mps2())
+    # the body: the wind frame pitched nose-up by alpha about the common y axis
+    al, dal, ddal = plan.aoa.evaluate(t)
+    ca, sa = np.cos(al), np.sin(al)
+    zero, one = np.zeros_like(al), np.ones_like(al)
+    c_bw = np.stack(
+        [
+            np.stack([ca, zero, -sa], -1),
+            np.stack([zero, one, zero], -1),
+            np.stack([sa, zero, ca], -1),
+        ],
+        axis=-2,
+    )  # (T, 3, 3), rows: body axes in the wind frame
+    dc_bw = dal[:, None, None] * np.stack(
+        [
+            np.stack([-sa, zero, -ca], -1),
+            np.stack([zero, zero, zero], -1),
+            np.stack([ca, zero, -sa], -1),
+        ],
+        axis=-2,
+    )
+    e_y = np.array([0.0, 1.0, 0.0])
+    w = np.einsum("tij,tj->ti", c_bw, w_w) + dal[:, None] * e_y
+    wd = (
+        np.einsum("tij,tj->ti", c_bw, wd_w)
+        + np.einsum("tij,tj->ti", dc_bw, w_w)
+        + ddal[:, None] * e_y
+    )
+    q_y = np.stack([np.cos(al / 2), zero, np.sin(al / 2), zero], -1)
+    q = quat_multiply(q_nw, q_y)
+    f_b = np.einsum("tij,tj->ti", c_bw, f_w)
+    return FlightTruth(t, pos, vel, q, w, wd, f_b)

@@ -3,9 +3,11 @@
 A flight scenario names the array, the sensor preset, the mounting errors and
 their calibration, the GPS receiver, the reference point, how the filter is
 initialised, and the flight itself as a list of legs. Each leg starts by
-moving bank, pitch, speed and yaw rate to its targets with a minimum-jerk
-ramp of ``ramp_s`` and holds them to the end of the leg; a key a leg leaves
-out keeps its previous value.
+moving bank, pitch (of the flight path), speed, yaw rate and angle of attack
+to its targets with a minimum-jerk ramp of ``ramp_s`` and holds them to the
+end of the leg; a key a leg leaves out keeps its previous value.
+``[flight] initial_speed_mps`` and ``initial_aoa_deg`` give the values at
+t = 0 (both 0 by default: at rest, body along the velocity).
 """
 
 from __future__ import annotations
@@ -112,6 +114,7 @@ class Leg:
     pitch_deg: float | None = None
     speed_mps: float | None = None
     yaw_rate_dps: float | None = None
+    aoa_deg: float | None = None
 
 
 @dataclass(frozen=True)
@@ -129,10 +132,18 @@ class FlightScenario:
     filter: FilterSettings
     legs: tuple[Leg, ...]
     initial_speed_mps: float = 0.0
+    initial_aoa_deg: float = 0.0
 
     def plan(self) -> FlightPlan:
-        """The flight's bank, pitch, speed and yaw-rate profiles."""
-        current = {"bank": 0.0, "pitch": 0.0, "speed": self.initial_speed_mps, "yaw": 0.0}
+        """The flight's bank, pitch, speed, yaw-rate and angle-of-attack profiles."""
+        aoa0 = float(np.deg2rad(self.initial_aoa_deg))
+        current = {
+            "bank": 0.0,
+            "pitch": 0.0,
+            "speed": self.initial_speed_mps,
+            "yaw": 0.0,
+            "aoa": aoa0,
+        }
         trans: dict[str, list[Transition]] = {k: [] for k in current}
         start = 0.0
         keys = {
@@ -140,6 +151,7 @@ class FlightScenario:
             "pitch": "pitch_deg",
             "speed": "speed_mps",
             "yaw": "yaw_rate_dps",
+            "aoa": "aoa_deg",
         }
         for leg in self.legs:
             for k, attr in keys.items():
@@ -158,6 +170,7 @@ class FlightScenario:
             speed=Profile(self.initial_speed_mps, tuple(trans["speed"])),
             yaw_rate=Profile(0.0, tuple(trans["yaw"])),
             heading0_rad=float(np.deg2rad(self.initial.heading_deg)),
+            aoa=Profile(aoa0, tuple(trans["aoa"])),
         )
 
 
@@ -203,16 +216,22 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
     flight = data.get("flight")
     if not isinstance(flight, dict) or "legs" not in flight:
         raise ValueError(f"{source}: missing [flight] with legs")
-    extra = sorted(set(flight) - {"legs", "initial_speed_mps"})
+    starts = ("initial_speed_mps", "initial_aoa_deg")
+    extra = sorted(set(flight) - {"legs", *starts})
     if extra:
         raise ValueError(f"{source}: unknown key flight.{extra[0]}")
-    speed0 = flight.get("initial_speed_mps", 0.0)
-    if isinstance(speed0, bool) or not isinstance(speed0, int | float):
-        raise ValueError(f"{source}: flight.initial_speed_mps: expected a number")
+    start_values = {}
+    for key in starts:
+        value = flight.get(key, 0.0)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ValueError(f"{source}: flight.{key}: expected a number")
+        start_values[key] = float(value)
+    legs = _legs(flight["legs"], source)
+    for i, leg in enumerate(legs):
+        if leg.aoa_deg is not None and not -30.0 < leg.aoa_deg < 30.0:
+            raise ValueError(f"{source}: flight.legs[{i}].aoa_deg must be in (-30, 30) deg")
     parts["sensor"].spec()  # validate the preset now, naming the file
-    return FlightScenario(
-        name=source, legs=_legs(flight["legs"], source), initial_speed_mps=float(speed0), **parts
-    )
+    return FlightScenario(name=source, legs=legs, **start_values, **parts)
 
 
 def is_flight_scenario(name_or_path: str) -> bool:

@@ -27,7 +27,8 @@ truth to separate files.
                    yaw_deg, tilt_sigma_deg, heading_source = "config"|"gps",
                    heading_sigma_deg, rate_sigma_dps
     [filter]       rate_hz, compensation, window, gate_probability, rate_range_dps,
-                   sideslip_sigma_deg, aoa_sigma_deg, gps_gap_reset_s, fusion_lag_s,
+                   sideslip_sigma_deg, aoa_sigma_deg, aoa_prior_deg,
+                   aoa_prior_sigma_deg, aoa_rw_deg_rts, gps_gap_reset_s, fusion_lag_s,
                    hold_wdot_sigma_rps2, hold_force_sigma_mps2
 """
 
@@ -79,15 +80,21 @@ class FilterSettings:
     counted as "heading resets to the GPS course"): a heading 180 deg off also
     has zero lateral velocity, and one tens of degrees off never passes the gate.
 
-    ``aoa_sigma_deg`` > 0 adds the same model about the body's z axis: with the
-    sideslip updates (and above the same speed), the body-vertical velocity is
-    measured as zero with a 1-sigma of ``|v| tan(aoa_sigma_deg)``, i.e. the
-    ground velocity lies along the body's x axis (the land-vehicle
-    non-holonomic constraint). It holds for a vehicle flying at zero angle of
-    attack and flight-path angle equal to pitch, as ngnav's simulated flights do
-    exactly; a real aircraft flies at a few degrees of angle of attack that
-    changes with load factor and speed, and needs a sigma that covers it or,
-    better, an angle-of-attack state. 0 (the default) leaves it out.
+    ``aoa_sigma_deg`` > 0 adds the same model in the body's x-z plane: with the
+    sideslip updates (and above the same speed), the velocity along the
+    wind-normal axis ``[-sin alpha, 0, cos alpha]`` (FRD) is measured as zero
+    with a 1-sigma of ``|v| tan(aoa_sigma_deg)``: the ground velocity leaves the
+    body x axis by the angle of attack ``alpha`` and by nothing else (calm air).
+    0 (the default) leaves it out.
+
+    ``aoa_prior_sigma_deg`` > 0 carries ``alpha`` as a filter state (``AOA``),
+    starting at ``aoa_prior_deg`` with that 1-sigma and wandering as a random
+    walk of ``aoa_rw_deg_rts`` (deg/sqrt(s)), which must cover how fast the
+    vehicle's angle of attack changes (it follows load factor and speed). The
+    state is learnt while GPS holds the velocity and carries the pitch-to-path
+    tie through an outage. With ``aoa_prior_sigma_deg`` = 0 the model assumes
+    ``alpha`` = 0 (the land-vehicle non-holonomic constraint), which no
+    aircraft keeps: lift needs angle of attack.
 
     ``gps_gap_reset_s``: the first fix after this long without an accepted
     GPS position (an outage) is not fused but, if it passes the gate, puts
@@ -112,6 +119,9 @@ class FilterSettings:
     rate_range_dps: float = 200.0
     sideslip_sigma_deg: float = 0.0
     aoa_sigma_deg: float = 0.0
+    aoa_prior_deg: float = 0.0
+    aoa_prior_sigma_deg: float = 0.0
+    aoa_rw_deg_rts: float = 0.0
     gps_gap_reset_s: float = 5.0
     fusion_lag_s: float = 0.1
     hold_wdot_sigma_rps2: float = 2.0
@@ -126,6 +136,22 @@ class FilterSettings:
             v = getattr(self, name)
             if not 0.0 <= v < 45.0:
                 raise ValueError(f"filter.{name} must be in [0, 45), got {v}")
+        if not (np.isfinite(self.aoa_prior_deg) and abs(self.aoa_prior_deg) < 30.0):
+            raise ValueError(f"filter.aoa_prior_deg must be in (-30, 30), got {self.aoa_prior_deg}")
+        for name in ("aoa_prior_sigma_deg", "aoa_rw_deg_rts"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and 0.0 <= v <= 30.0):
+                raise ValueError(f"filter.{name} must be a number in [0, 30], got {v}")
+        if self.aoa_prior_sigma_deg > 0 and self.aoa_sigma_deg == 0:
+            raise ValueError(
+                "filter.aoa_prior_sigma_deg > 0 needs filter.aoa_sigma_deg > 0: the "
+                "angle-of-attack state is observed only through that model"
+            )
+        if self.aoa_rw_deg_rts > 0 and self.aoa_prior_sigma_deg == 0:
+            raise ValueError(
+                "filter.aoa_rw_deg_rts > 0 needs filter.aoa_prior_sigma_deg > 0 "
+                "(the angle-of-attack state)"
+            )
         if not (np.isfinite(self.gps_gap_reset_s) and self.gps_gap_reset_s >= 0.0):
             raise ValueError(
                 f"filter.gps_gap_reset_s must be a finite number >= 0, got {self.gps_gap_reset_s}"

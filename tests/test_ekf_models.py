@@ -24,13 +24,20 @@ from tests.helpers import initialise_level
 PAIRS = np.array([[1, 2], [0, 2], [0, 1]])
 
 
-def _filter(position_sigma_m: float = 0.0) -> tuple[NavFilter, ArrayLayout, ArraySolver]:
+def _filter(
+    position_sigma_m: float = 0.0, aoa_sigma_rad: float = 0.0
+) -> tuple[NavFilter, ArrayLayout, ArraySolver]:
     layout = nine_accelerometer_cube(0.1)
     solver = ArraySolver(layout, np.full(9, 1e-3))
     cov = solver.covariance()
     noise = FilterNoise(cov, cov, cov * 1e-6, position_sigma_m)
     nf = NavFilter(
-        noise, PAIRS, np.zeros(3), sensor_axes_b=layout.axes_b, solve_matrix=solver.solve_matrix
+        noise,
+        PAIRS,
+        np.zeros(3),
+        sensor_axes_b=layout.axes_b,
+        solve_matrix=solver.solve_matrix,
+        aoa_prior_sigma_rad=aoa_sigma_rad,
     )
     initialise_level(nf)
     return nf, layout, solver
@@ -85,8 +92,39 @@ def test_body_velocity_jacobians_match_finite_differences(rotvec, vel):
             assert h[0, VEL][k] == pytest.approx((up - dn) / (2 * eps), abs=1e-6)
 
 
-@pytest.mark.parametrize("axis", [LATERAL, VERTICAL])
-def test_body_velocity_second_order_terms_match_monte_carlo(axis):
+@settings(max_examples=30, deadline=None)
+@given(vec3.map(lambda v: v * 0.5), vec3.map(lambda v: v * 10.0), st.floats(-0.3, 0.3))
+def test_angle_of_attack_model_and_jacobian(rotvec, vel, aoa):
+    """With the AOA state the vertical model is the velocity along the wind-normal
+    axis ``[-sin a, 0, cos a]``; its Jacobian in attitude, velocity and angle of attack
+    against central differences (the lateral model does not depend on it)."""
+    nf, _, _ = _filter(aoa_sigma_rad=0.05)
+    assert nf.layout.n == 22 and nf.layout.aoa == slice(21, 22)
+    q = quat_from_rotvec(rotvec)
+    h0, h = nf.body_velocity_model(q, vel, VERTICAL, aoa)
+    v_b = dcm_from_quat(q).T @ vel
+    assert h0 == pytest.approx(-np.sin(aoa) * v_b[0] + np.cos(aoa) * v_b[2], abs=1e-12)
+    eps = 1e-6
+    up = nf.body_velocity_model(q, vel, VERTICAL, aoa + eps)[0]
+    dn = nf.body_velocity_model(q, vel, VERTICAL, aoa - eps)[0]
+    assert h[0, nf.layout.aoa][0] == pytest.approx((up - dn) / (2 * eps), abs=1e-6)
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = eps
+        up = nf.body_velocity_model(quat_multiply(quat_from_rotvec(d), q), vel, VERTICAL, aoa)[0]
+        dn = nf.body_velocity_model(quat_multiply(quat_from_rotvec(-d), q), vel, VERTICAL, aoa)[0]
+        assert h[0, ATT][k] == pytest.approx((up - dn) / (2 * eps), abs=1e-6)
+    assert nf.body_velocity_model(q, vel, LATERAL, aoa)[1][0, nf.layout.aoa][0] == 0.0
+    # a vehicle flying at its angle of attack meets the model exactly
+    assert nf.body_velocity_model(q, dcm_from_quat(q) @ [np.cos(aoa), 0, np.sin(aoa)], 2, aoa)[
+        0
+    ] == pytest.approx(0.0, abs=1e-15)
+
+
+@pytest.mark.parametrize(
+    ("axis", "aoa_state"), [(LATERAL, False), (VERTICAL, False), (VERTICAL, True)]
+)
+def test_body_velocity_second_order_terms_match_monte_carlo(axis, aoa_state):
     """Mean and variance of what the linear sideslip (lateral) and angle-of-attack
     (vertical) models leave out, against sampling.
 
@@ -94,28 +132,41 @@ def test_body_velocity_second_order_terms_match_monte_carlo(axis):
     coast-sized) are injected exactly (``q_true = exp(dtheta) q``); the true lateral
     velocity minus its linear prediction must have the mean and variance that
     ``sideslip_second_order`` gives, within the sampling error of 200 000 draws.
+    With the ``AOA`` state (a 1.5 deg angle of attack known to 1 deg, correlated with
+    the rest) its error turns the constraint axis too.
     """
-    nf, _, _ = _filter()
+    nf, _, _ = _filter(aoa_sigma_rad=0.02 if aoa_state else 0.0)
     rng = np.random.default_rng(7)
     nf.q = quat_from_rotvec(np.array([0.3, -0.1, 2.0]))
     nf.vel = np.array([14.0, -15.0, 1.0])
-    idx = np.r_[6:9, 3:6]
-    a = rng.normal(size=(6, 6))
+    nf.aoa = np.deg2rad(1.5) if aoa_state else 0.0
+    idx = np.r_[6:9, 3:6, nf.layout.aoa.start] if aoa_state else np.r_[6:9, 3:6]
+    d = idx.size
+    a = rng.normal(size=(d, d))
     px = a @ a.T
-    px *= np.r_[[0.03] * 3, [1.5] * 3][:, None] * np.r_[[0.03] * 3, [1.5] * 3][None, :] / 6.0
+    scale = np.r_[[0.03] * 3, [1.5] * 3, [0.0175] * (d - 6)]
+    px *= np.outer(scale, scale) / d
     p = np.eye(nf.layout.n) * 1e-6
     p[np.ix_(idx, idx)] = px
     nf.P = p
-    y0, h = nf.body_velocity_model(nf.q, nf.vel, axis)
+    y0, h = nf.body_velocity_model(nf.q, nf.vel, axis, nf.aoa)
     mean, var = nf.body_velocity_second_order(axis)
     if axis == LATERAL:
         assert (mean, var) == nf.sideslip_second_order()
     n = 200_000
-    x = rng.multivariate_normal(np.zeros(6), px, n)
-    dq = np.array([quat_from_rotvec(d) for d in x[:, 0:3]])
-    lat = np.array([dcm_from_quat(quat_multiply(d, nf.q))[:, axis] for d in dq])
-    y_true = np.einsum("ki,ki->k", lat, nf.vel + x[:, 3:6])
+    x = rng.multivariate_normal(np.zeros(d), px, n)
+    dq = np.array([quat_from_rotvec(e) for e in x[:, 0:3]])
+    c_true = np.array([dcm_from_quat(quat_multiply(e, nf.q)) for e in dq])
+    al = nf.aoa + (x[:, 6] if aoa_state else 0.0)
+    n_b = np.zeros((n, 3))
+    if axis == LATERAL:
+        n_b[:, 1] = 1.0
+    else:
+        n_b[:, 0], n_b[:, 2] = -np.sin(al), np.cos(al)
+    y_true = np.einsum("ki,kji,kj->k", n_b, c_true, nf.vel + x[:, 3:6])
     resid = y_true - (y0 + x[:, 3:6] @ h[0, VEL] + x[:, 0:3] @ h[0, ATT])
+    if aoa_state:
+        resid -= x[:, 6] * h[0, nf.layout.aoa][0]
     sd = np.sqrt(var)
     assert abs(resid.mean() - mean) < 4.0 * sd / np.sqrt(n)
     # the sample variance: a 2 % band (sampling about 0.5 %, third-order terms of the

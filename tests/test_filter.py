@@ -370,7 +370,12 @@ def test_a_long_gap_of_held_samples_widens_the_covariance(tactical):
     # attitude through the gap: with the hold model it stays consistent, without it
     # the filter loses its tilt, and loses it again after the reopen (before the reopen
     # existed its attitude NEES passed 100x the 99.9 % point here)
-    no_model = {"sideslip_sigma_deg": 0.0, "aoa_sigma_deg": 0.0}
+    no_model = {
+        "sideslip_sigma_deg": 0.0,
+        "aoa_sigma_deg": 0.0,
+        "aoa_prior_sigma_deg": 0.0,
+        "aoa_rw_deg_rts": 0.0,
+    }
     worst_nm, _ = worst_att_nees(replace(sim.config, filter=replace(sim.config.filter, **no_model)))
     assert worst_nm < chi2.ppf(0.999, 3)
     with pytest.raises(LostTrackError, match="lost again"):

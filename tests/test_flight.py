@@ -1,5 +1,7 @@
 """Flight truth, geodesy, sensor presets and GPS model: checked against exact references."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -20,13 +22,15 @@ def _turning_plan() -> FlightPlan:
         pitch=Profile(0.0, (Transition(1.0, 2.0, np.deg2rad(10)),)),
         speed=Profile(30.0, (Transition(0.0, 4.0, 5.0),)),
         heading0_rad=0.3,
+        # angle of attack rising with the turn's load factor and falling as it ends
+        aoa=Profile(0.03, (Transition(0.5, 1.0, 0.04), Transition(3.2, 1.2, -0.05))),
     )
 
 
 def test_rate_derivative_is_the_exact_derivative_of_the_rate():
     # central differences converge at second order to the analytic derivative (away
     # from the ramp ends, where the jerk of a minimum-jerk step jumps by design)
-    knots = np.array([0.0, 0.5, 1.0, 1.5, 3.0, 4.0, 4.5])
+    knots = np.array([0.0, 0.5, 1.0, 1.5, 3.0, 3.2, 4.0, 4.4, 4.5])
     errs = []
     for rate in (200.0, 400.0, 800.0):
         tr = fly(_turning_plan(), rate)
@@ -53,6 +57,39 @@ def test_specific_force_is_acceleration_minus_gravity():
     pos_fd = (tr.pos_ned_m[2:] - tr.pos_ned_m[:-2]) * 500.0
     # central-difference truncation h^2/6 |d2v/dt2| is a few 1e-6 m/s at 1 kHz here
     assert np.abs(pos_fd - tr.vel_ned_mps[1:-1]).max() < 1e-5
+
+
+def test_body_sees_its_velocity_at_the_angle_of_attack():
+    plan = _turning_plan()
+    tr = fly(plan, 500.0)
+    v_b = np.einsum("tji,tj->ti", dcm_from_quat(tr.q_nb), tr.vel_ned_mps)
+    alpha = plan.aoa.evaluate(tr.t_s)[0]
+    assert np.abs(v_b[:, 1]).max() < 1e-12  # no sideslip
+    assert np.allclose(np.arctan2(v_b[:, 2], v_b[:, 0]), alpha, atol=1e-12, rtol=0)
+    # the same flight at zero angle of attack has the same path
+    flat = fly(dataclasses.replace(plan, aoa=Profile(0.0)), 500.0)
+    assert np.array_equal(flat.pos_ned_m, tr.pos_ned_m)
+    assert np.array_equal(flat.vel_ned_mps, tr.vel_ned_mps)
+
+
+def test_angle_of_attack_tilts_the_lift_into_the_body():
+    """In a steady level turn at angle of attack alpha the specific force is the
+    wind frame's ``[0, 0, -g / cos(bank)]`` seen from the body: ``x = +g sin(alpha) /
+    cos(bank)`` (lift leans forward in body axes), ``z = -g cos(alpha) / cos(bank)``."""
+    bank, alpha = np.deg2rad(30.0), np.deg2rad(4.0)
+    plan = FlightPlan(
+        8.0,
+        Profile(0.0, (Transition(1.0, 2.0, bank),)),
+        Profile(0.0),
+        Profile(25.0),
+        aoa=Profile(alpha),
+    )
+    tr = fly(plan, 200.0)
+    steady = tr.t_s > 3.5
+    n = G0_MPS2 / np.cos(bank)
+    assert np.allclose(tr.f_b_mps2[steady, 0], n * np.sin(alpha), rtol=1e-9)
+    assert np.abs(tr.f_b_mps2[steady, 1]).max() < 1e-9
+    assert np.allclose(tr.f_b_mps2[steady, 2], -n * np.cos(alpha), rtol=1e-9)
 
 
 def test_coordinated_turn_has_no_side_force():
