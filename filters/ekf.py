@@ -38,6 +38,7 @@ from scipy.stats import chi2
 from filters.state import ATT, B_F, B_WDOT, POS, RATE, VEL, StateLayout, b_quad
 from ngnav.conventions import gravity_n_mps2
 from ngnav.flight import quat_from_euler
+from ngnav.motion import min_jerk_step
 from ngnav.rotation import (
     cross_rows,
     dcm_from_quat,
@@ -206,6 +207,17 @@ class NavFilter:
         1-sigma, rad; 0 (the default) assumes zero angle of attack.
     aoa_rw_rad_rts : float
         Random walk of the angle-of-attack state, rad/sqrt(s).
+    aoa_lift_k_m : float
+        The airframe's lift law ``K`` (m): with it the state is the law's offset
+        ``alpha_b`` and the angle of attack is ``w(V) (alpha_b + K n_w / V^2)`` (see
+        :meth:`set_load`); 0 (the default) makes the state the angle of attack itself.
+    liftoff_speed_mps : float
+        The lift-off blend ``w(V)``: 0 below 0.8 times this speed (on the wheels,
+        no angle of attack), 1 from it up, a minimum-jerk step between; 0 (the
+        default) means always flying.
+    aoa_lift_k_sigma_m : float
+        > 0 (with ``aoa_lift_k_m``) carries the error of ``K`` as a second, constant
+        ``AOA`` state with this prior 1-sigma, m.
     """
 
     noise: FilterNoise
@@ -217,6 +229,9 @@ class NavFilter:
     solve_matrix: np.ndarray | None = None
     aoa_prior_sigma_rad: float = 0.0
     aoa_rw_rad_rts: float = 0.0
+    aoa_lift_k_m: float = 0.0
+    liftoff_speed_mps: float = 0.0
+    aoa_lift_k_sigma_m: float = 0.0
     counters: Counters = field(default_factory=Counters)
 
     def __post_init__(self) -> None:
@@ -226,11 +241,20 @@ class NavFilter:
             if self.sensor_axes_b is None or self.solve_matrix is None:
                 raise ValueError("position states need sensor_axes_b and solve_matrix")
             n_dr = 3 * self.sensor_axes_b.shape[0]
-        for name in ("aoa_prior_sigma_rad", "aoa_rw_rad_rts"):
+        for name in (
+            "aoa_prior_sigma_rad",
+            "aoa_rw_rad_rts",
+            "aoa_lift_k_m",
+            "liftoff_speed_mps",
+            "aoa_lift_k_sigma_m",
+        ):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0.0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {v}")
-        self.layout = StateLayout(self.quad_pairs.shape[0], n_dr, int(self.aoa_prior_sigma_rad > 0))
+        n_aoa = int(self.aoa_prior_sigma_rad > 0)
+        if n_aoa and self.aoa_lift_k_m > 0 and self.aoa_lift_k_sigma_m > 0:
+            n_aoa = 2
+        self.layout = StateLayout(self.quad_pairs.shape[0], n_dr, n_aoa)
         n = self.layout.n
         k = 6 + self.layout.nq
         for name in ("feature_cov", "bias_prior_cov", "bias_rw_cov"):
@@ -251,7 +275,12 @@ class NavFilter:
         self.w = np.zeros(3)
         self.bias = np.zeros(6 + self.layout.nq)
         self.dr = np.zeros(n_dr)
-        self.aoa = 0.0
+        self.aoa_b = 0.0
+        self.aoa_k = self.aoa_lift_k_m  # the lift law's K estimate, m
+        self._lift_u = 0.0  # n_w / V^2 of the last block, 1/m
+        self._lift_w = 1.0  # the lift-off blend w(V)
+        self._lift_axis = np.array([0.0, 0.0, -1.0])  # n_w = _lift_axis . f (FRD)
+        self._lift_dw = 0.0  # dw/dV of the lift-off blend, s/m
         self._eye = np.eye(n)
         self._eye3 = np.eye(3)
         self._g = gravity_n_mps2()
@@ -289,8 +318,8 @@ class NavFilter:
     ) -> None:
         """Set the nominal state and a diagonal prior (biases from ``noise.bias_prior_cov``).
 
-        ``aoa_rad`` is the angle of attack's prior mean (used with the ``AOA`` state;
-        its 1-sigma is ``aoa_prior_sigma_rad``).
+        ``aoa_rad`` is the ``AOA`` state's prior mean (the angle of attack, or with
+        a lift law its offset ``alpha_b``); its 1-sigma is ``aoa_prior_sigma_rad``.
         """
         self.t_s = float(t_s)
         self.pos = np.array(pos_ned_m, dtype=float)
@@ -308,9 +337,13 @@ class NavFilter:
         dr = self.layout.dr
         p[dr, dr] = np.eye(self.layout.n_dr) * self.noise.position_sigma_m**2
         self.dr = np.zeros(self.layout.n_dr)
-        self.aoa = float(aoa_rad) if self.layout.n_aoa else 0.0
+        self.aoa_b = float(aoa_rad) if self.layout.n_aoa else 0.0
+        self.aoa_k = self.aoa_lift_k_m
+        self._lift_u, self._lift_w = 0.0, 1.0
         ia = self.layout.aoa
-        p[ia, ia] = self.aoa_prior_sigma_rad**2
+        p[ia, ia] = np.diag(
+            [self.aoa_prior_sigma_rad**2, self.aoa_lift_k_sigma_m**2][: ia.stop - ia.start]
+        )
         self.P = p
         self.x = np.zeros(self.layout.n)
         self.t_last_position_fix = self.t_s
@@ -492,8 +525,9 @@ class NavFilter:
         q[:12, :12] = q12
         bs = self.layout.bias
         q[bs, bs] = self.noise.bias_rw_cov * t
-        ia = self.layout.aoa
-        q[ia, ia] = self.aoa_rw_rad_rts**2 * t
+        ia = self.layout.aoa.start
+        if self.layout.n_aoa:
+            q[ia, ia] = self.aoa_rw_rad_rts**2 * t  # the K error (if carried) is constant
         return phi, q
 
     def _q12_body(self, k: int, dt: float) -> np.ndarray:
@@ -684,6 +718,43 @@ class NavFilter:
             self.t_last_position_fix = self.t_s
         return GpsUpdateResult(nis_p, nis_v, ok_p, ok_v, nis_h, nis_vt)
 
+    @property
+    def aoa(self) -> float:
+        """The nominal angle of attack, rad: ``w (alpha_b + K u)`` (``alpha_b`` without a law)."""
+        return self._lift_w * (self.aoa_b + self.aoa_k * self._lift_u)
+
+    def _aoa_gradient(self) -> np.ndarray:
+        """d alpha / d(AOA states): ``w [1, u]`` (or ``[w]`` with the offset alone)."""
+        return self._lift_w * np.array([1.0, self._lift_u])[: self.layout.n_aoa]
+
+    @property
+    def aoa_sigma(self) -> float:
+        """1-sigma of :attr:`aoa`, rad (0 without the ``AOA`` state)."""
+        if not self.layout.n_aoa:
+            return 0.0
+        ia = self.layout.aoa
+        j = self._aoa_gradient()
+        return float(np.sqrt(j @ self.P[ia, ia] @ j))
+
+    def set_load(self, f_b_mps2: np.ndarray) -> None:
+        """Feed the lift law the block's specific force (FRD, m/s^2, biases removed).
+
+        ``u = n_w / V^2`` with the wind-frame normal load ``n_w = sin(a) f_x - cos(a) f_z``
+        at the current angle of attack and ``V = |v|`` (calm air), and the lift-off blend
+        ``w(V)``. The angle of attack so depends on the velocity and force-bias states
+        too; :meth:`body_velocity_model` carries both in its Jacobian.
+        """
+        speed = float(np.linalg.norm(self.vel))
+        a = self.aoa  # the angle n_w is taken at: the last block's
+        v_lof = self.liftoff_speed_mps
+        if v_lof > 0.0:
+            s, ds, _ = min_jerk_step((speed - 0.8 * v_lof) / (0.2 * v_lof))
+            self._lift_w, self._lift_dw = float(s), float(ds) / (0.2 * v_lof)
+        if self.aoa_k > 0.0 and speed > 1.0:
+            self._lift_axis = np.array([np.sin(a), 0.0, -np.cos(a)])  # n_w = this . f
+            n_w = self._lift_axis @ f_b_mps2
+            self._lift_u = float(n_w) / speed**2
+
     def body_velocity_model(
         self, q_nb: np.ndarray, vel_ned_mps: np.ndarray, axis: int = LATERAL, aoa_rad: float = 0.0
     ) -> tuple[float, np.ndarray]:
@@ -693,7 +764,11 @@ class NavFilter:
         :data:`VERTICAL` (``n_b = [-sin alpha, 0, cos alpha]``, the wind-normal axis at
         angle of attack ``aoa_rad``: the angle-of-attack model; ``e_z`` at zero). With
         the ``AOA`` state the vertical model's Jacobian includes
-        ``d/dalpha = -t_b . C^T v``, ``t_b = [cos alpha, 0, sin alpha]`` (the wind x axis).
+        ``d/dalpha = -t_b . C^T v``, ``t_b = [cos alpha, 0, sin alpha]`` (the wind x axis),
+        times ``d alpha / d(states)``: ``w [1, u]`` for the law's offset and ``K``, and,
+        through ``u = n_w / V^2`` (:meth:`set_load`), ``-2 w K u v^T / V^2`` for the
+        velocity and ``-w K [sin a, 0, -cos a] / V^2`` for the specific-force bias, and
+        through the lift-off blend ``w(V)``, ``w'(V) (alpha_b + K u) v^T / V``.
         """
         c = dcm_from_quat(q_nb)
         n_b, t_b = _constraint_axes(axis, aoa_rad)
@@ -702,7 +777,17 @@ class NavFilter:
         h[0, VEL] = row
         h[0, ATT] = row @ skew(vel_ned_mps)
         if axis == VERTICAL and self.layout.n_aoa:
-            h[0, self.layout.aoa] = -float((c @ t_b) @ vel_ned_mps)
+            # d alpha / d(alpha_b, K) = w [1, u] (w the lift-off blend)
+            dh_da = -float((c @ t_b) @ vel_ned_mps)
+            h[0, self.layout.aoa] = dh_da * self._aoa_gradient()
+            speed2 = float(vel_ned_mps @ vel_ned_mps)
+            if self._lift_dw and speed2 > 1.0:
+                lift = self.aoa_b + self.aoa_k * self._lift_u
+                h[0, VEL] += dh_da * self._lift_dw * lift * vel_ned_mps / np.sqrt(speed2)
+            if self.aoa_k > 0.0 and speed2 > 1.0:
+                wk = self._lift_w * self.aoa_k / speed2
+                h[0, VEL] += dh_da * (-2.0 * wk * self._lift_u) * vel_ned_mps
+                h[0, B_F] += dh_da * (-wk) * self._lift_axis
         return float(row @ vel_ned_mps), h
 
     def sideslip_model(self, q_nb: np.ndarray, vel_ned_mps: np.ndarray) -> tuple[float, np.ndarray]:
@@ -777,7 +862,7 @@ class NavFilter:
         n_b, t_b = _constraint_axes(axis, self.aoa)
         a = c @ n_b
         v = self.vel
-        with_aoa = axis == VERTICAL and self.layout.n_aoa == 1
+        with_aoa = axis == VERTICAL and self.layout.n_aoa > 0
         d = 7 if with_aoa else 6
         m = np.zeros((d, d))
         m[0:3, 0:3] = 0.5 * (np.outer(a, v) + np.outer(v, a)) - float(a @ v) * self._eye3
@@ -790,8 +875,14 @@ class NavFilter:
             m[6, 0:3] = m[0:3, 6] = -(b @ skew(v))
             m[6, 3:6] = m[3:6, 6] = -b
             m[6, 6] = -float(a @ v)
-            idx = np.r_[idx, self.layout.aoa.start]
         px = self.P[np.ix_(idx, idx)]
+        if with_aoa:  # the angle of attack's error: w (d alpha_b + u dK)
+            ia = self.layout.aoa
+            j = self._aoa_gradient()
+            cross = self.P[idx, ia] @ j
+            px = np.block(
+                [[px, cross[:, None]], [cross[None, :], np.array([[j @ self.P[ia, ia] @ j]])]]
+            )
         mp = m @ px
         return 0.5 * float(np.trace(mp)), 0.5 * float(np.sum(mp * mp.T))
 
@@ -933,7 +1024,10 @@ class NavFilter:
         self.bias = self.bias + dx[self.layout.bias]
         self.dr = self.dr + dx[self.layout.dr]
         if self.layout.n_aoa:
-            self.aoa += float(dx[self.layout.aoa][0])
+            da = dx[self.layout.aoa]
+            self.aoa_b += float(da[0])
+            if self.layout.n_aoa == 2:
+                self.aoa_k += float(da[1])
         # reset Jacobian of the attitude error (first order): G = I except G[ATT, ATT]
         ga = np.eye(3) - 0.5 * skew(dth)
         p = self.P

@@ -18,7 +18,13 @@ from scipy.stats import chi2
 from filters.pipeline import Estimates
 from filters.state import NEES_BLOCKS
 from ngnav.flight import FlightTruth
-from ngnav.rotation import euler_from_quat, quat_conjugate, quat_multiply, quat_to_rotvec
+from ngnav.rotation import (
+    dcm_from_quat,
+    euler_from_quat,
+    quat_conjugate,
+    quat_multiply,
+    quat_to_rotvec,
+)
 
 
 @dataclass(frozen=True)
@@ -63,6 +69,28 @@ def run_errors(est: Estimates, truth: FlightTruth) -> RunErrors:
         rpy,
         truth.omega_b_rps[i] - est.omega_b_rps,
     )
+
+
+#: Below this speed the truth's angle of attack is not defined (m/s).
+AOA_MIN_SPEED_MPS = 5.0
+
+
+def truth_aoa_rad(truth: FlightTruth, idx: np.ndarray) -> np.ndarray:
+    """The truth's angle of attack (rad) at sample indices ``idx``: the body x-z angle
+    of its velocity, ``atan2(v_bz, v_bx)``; NaN below :data:`AOA_MIN_SPEED_MPS`."""
+    v = truth.vel_ned_mps[idx]
+    v_b = np.einsum("eji,ej->ei", dcm_from_quat(truth.q_nb[idx]), v)
+    a = np.arctan2(v_b[:, 2], v_b[:, 0])
+    return np.where(np.linalg.norm(v, axis=1) >= AOA_MIN_SPEED_MPS, a, np.nan)
+
+
+def aoa_nees(est: Estimates, truth: FlightTruth) -> np.ndarray | None:
+    """Angle-of-attack NEES per epoch (E,), 1 dof (NaN where the truth has none),
+    or None when the filter does not carry the state."""
+    if est.aoa_rad is None:
+        return None
+    e = truth_aoa_rad(truth, truth_indices(truth, est.t_s)) - est.aoa_rad
+    return (e / est.aoa_sigma_rad) ** 2
 
 
 def nees(errors: RunErrors, cov_nav: np.ndarray) -> dict[str, np.ndarray]:

@@ -16,6 +16,7 @@ from filters.ekf import CovarianceError
 from filters.evaluate import (
     ErrorSummary,
     RunErrors,
+    aoa_nees,
     bound_summary,
     chi2_bounds,
     nees,
@@ -246,7 +247,7 @@ def _events(sim: SimulatedRun, scn: FlightScenario, res: RunResult, errs: RunErr
 
 
 # --------------------------------------------------------------------- Monte Carlo
-def _one_run(scn: FlightScenario, i: int, method: str) -> dict:
+def _one_run(scn: FlightScenario, i: int, method: str, from_s: float = -np.inf) -> dict:
     sim = simulate_flight(scn, i)
     try:
         res = run_filter(
@@ -261,6 +262,9 @@ def _one_run(scn: FlightScenario, i: int, method: str) -> dict:
         return {"run": i, "diverged": str(exc)}
     errs = run_errors(res.estimates, sim.truth)
     ne = {k: v.astype(np.float32) for k, v in nees(errs, res.estimates.cov_nav).items()}
+    ne_aoa = aoa_nees(res.estimates, sim.truth)
+    if ne_aoa is not None:
+        ne["aoa"] = ne_aoa.astype(np.float32)
     inn = res.innovations
     keep = np.ones(inn.t_s.shape, dtype=bool)
     for tg in sim.fixes.t_s[sim.glitched]:
@@ -269,12 +273,21 @@ def _one_run(scn: FlightScenario, i: int, method: str) -> dict:
         "run": i,
         "nees": ne,
         "t_s": res.estimates.t_s,
-        "nis_pos": np.where(keep, inn.nis_pos, np.nan),
-        "nis_vel": inn.nis_vel,
-        "rate_nis": res.rate_nis,
+        "nis_pos": np.where(keep & (inn.t_s >= from_s), inn.nis_pos, np.nan),
+        "nis_vel": np.where(inn.t_s >= from_s, inn.nis_vel, np.nan),
+        "rate_nis": np.where(res.rate_nis_t_s >= from_s, res.rate_nis, np.nan),
         "rate_dim": res.rate_dim,
         "att_rms_deg": float(np.rad2deg(np.sqrt(np.mean(np.sum(errs.att_ned_rad**2, axis=1))))),
     }
+
+
+def _finite_mean(x: np.ndarray, axis: int | None = None) -> np.ndarray:
+    """Mean of the finite values along ``axis``; NaN where there is none (no warning)."""
+    ok = np.isfinite(x)
+    n = ok.sum(axis=axis)
+    total = np.where(ok, x, 0.0).sum(axis=axis)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, total / np.maximum(n, 1), np.nan)
 
 
 def _block(per_run: list[np.ndarray], dim: int, runs: int) -> tuple[dict, np.ndarray]:
@@ -284,14 +297,14 @@ def _block(per_run: list[np.ndarray], dim: int, runs: int) -> tuple[dict, np.nda
     pessimistic filter falls below, an optimistic one above) and the per-epoch
     average (E,).
     """
-    avg = np.nanmean(np.vstack(per_run), axis=0)
+    avg = _finite_mean(np.vstack(per_run), axis=0)
     lo, hi = chi2_bounds(dim, runs)
     ok = np.isfinite(avg)
     return {
         "dim": dim,
         "lower": lo,
         "upper": hi,
-        "mean": float(np.nanmean(avg)),
+        "mean": float(_finite_mean(avg)),
         "share_inside": share_inside(avg, dim, runs),
         "share_below": float(np.mean(avg[ok] < lo)),
         "share_above": float(np.mean(avg[ok] > hi)),
@@ -315,7 +328,7 @@ def nees_profile(t_s: np.ndarray, averages: dict[str, np.ndarray], window_s: flo
                 {
                     "t0_s": float(t0),
                     "t1_s": float(t0 + window_s),
-                    **{k: float(np.nanmean(v[m])) for k, v in averages.items()},
+                    **{k: float(_finite_mean(v[m])) for k, v in averages.items()},
                 }
             )
     return rows
@@ -328,6 +341,7 @@ def consistency(
     workers: int = 2,
     progress: bool = False,
     profile_s: float | None = None,
+    from_s: float | None = None,
 ) -> dict:
     """NEES/NIS over ``runs`` Monte Carlo runs; share of epochs inside the 95 % bounds.
 
@@ -336,6 +350,9 @@ def consistency(
     the NIS (they are meant to fail it). A run whose covariance check fails
     is listed under ``diverged`` and left out of the averages (``runs`` counts
     the runs averaged): a divergence is a result to report, not a crash.
+    ``from_s`` leaves the epochs before that time (s) out of every block's
+    statistics (to judge a filter after a start-up transient; the whole run is
+    the default); the profile still covers the whole run.
     ``profile_s`` adds ``profile``: the NEES blocks' means over windows of that
     many seconds (:func:`nees_profile`).
     """
@@ -350,7 +367,8 @@ def consistency(
     chunk = max(1, workers)
     for start in range(0, runs, chunk):
         tasks = [
-            dask.delayed(_one_run)(scn, i, method) for i in range(start, min(runs, start + chunk))
+            dask.delayed(_one_run)(scn, i, method, -np.inf if from_s is None else from_s)
+            for i in range(start, min(runs, start + chunk))
         ]
         if workers > 1:
             results += dask.compute(*tasks, scheduler="processes", num_workers=workers)
@@ -370,15 +388,20 @@ def consistency(
         "scenario": scn.name,
         "runs": runs,
         "method": method,
+        "from_s": from_s,
         "diverged": diverged,
         "blocks": {},
     }
     dims = {"pos": 3, "vel": 3, "att": 3, "rate": 3, "all": 12}
+    if "aoa" in results[0]["nees"]:
+        dims["aoa"] = 1  # the angle-of-attack state (NaN where the truth has none)
     averages = {}
+    t_s = results[0]["t_s"]
+    after = t_s >= (-np.inf if from_s is None else from_s)
     for name, d in dims.items():
-        out["blocks"][f"NEES {name}"], averages[name] = _block(
-            [r["nees"][name] for r in results], d, runs
-        )
+        per_run = [r["nees"][name] for r in results]
+        out["blocks"][f"NEES {name}"] = _block([x[after] for x in per_run], d, runs)[0]
+        averages[name] = _block(per_run, d, runs)[1]
     for key, d in (("nis_pos", 3), ("nis_vel", 3)):
         out["blocks"][f"NIS gps {key[4:]}"] = _block([r[key] for r in results], d, runs)[0]
     nq = results[0]["rate_dim"]

@@ -8,7 +8,10 @@ Columns (the contract), then extras::
     vn_mps_sigma, ve_mps_sigma, vd_mps_sigma,
     att_n_rad_sigma, att_e_rad_sigma, att_d_rad_sigma,
     wx_radps_sigma, wy_radps_sigma, wz_radps_sigma,
-    roll_deg, pitch_deg, yaw_deg
+    roll_deg, pitch_deg, yaw_deg, aoa_deg, aoa_deg_sigma
+
+``aoa_deg`` and its 1-sigma are the angle-of-attack state (nose above the flight
+path, deg), or empty (NaN) when the filter does not carry it.
 
 The attitude's uncertainty is given as the 1-sigma of the NED rotation-vector
 error (``q_true = exp(dtheta) * q_est``), not per quaternion component; for
@@ -51,6 +54,8 @@ ESTIMATE_COLUMNS: tuple[str, ...] = (
     "roll_deg",
     "pitch_deg",
     "yaw_deg",
+    "aoa_deg",
+    "aoa_deg_sigma",
 )
 
 
@@ -65,6 +70,8 @@ def estimates_table(est: Estimates, cfg: RunConfig) -> np.ndarray:
     lat_sig = np.rad2deg(sig[:, 0] / (rm + alt))
     lon_sig = np.rad2deg(sig[:, 1] / ((rn + alt) * np.cos(np.deg2rad(lat))))
     rpy = np.rad2deg(euler_from_quat(est.q_nb))
+    nan = np.full(est.t_s.shape, np.nan)
+    aoa = (nan, nan) if est.aoa_rad is None else (est.aoa_rad, est.aoa_sigma_rad)
     return np.column_stack(
         [
             est.t_s,
@@ -83,6 +90,8 @@ def estimates_table(est: Estimates, cfg: RunConfig) -> np.ndarray:
             sig[:, 6:9],
             sig[:, 9:12],
             rpy,
+            np.rad2deg(aoa[0]),
+            np.rad2deg(aoa[1]),
         ]
     )
 

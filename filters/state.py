@@ -13,7 +13,8 @@ B_WDOT     3      bias of the solved angular acceleration, FRD, rad/s^2
 B_F        3      bias of the solved specific force, FRD, m/s^2
 B_QUAD     nq     bias of the solved rate-quadratic terms, rad^2/s^2
 DR         3N     residual sensor-position errors ``dr_i``, FRD, m (optional)
-AOA        1      angle-of-attack error, rad (optional)
+AOA        1-2    angle-of-attack error, rad; with a lift law the law's offset
+                  error (rad) and its ``K`` error (m) (optional)
 =========  =====  ==============================================================
 
 Why these biases: each channel's bias ``beta_i`` enters the solved features as
@@ -39,14 +40,18 @@ position calibration. The block is present when the configuration gives a
 nonzero position uncertainty (``position_sigma_m``).
 
 Why ``AOA``: an aircraft's velocity leaves its body x axis by the angle of
-attack, which its lift needs and which grows with load factor and falls with
-speed. The vehicle model (``FilterSettings.aoa_sigma_deg``) measures the
-velocity along the wind-normal axis ``[-sin alpha, 0, cos alpha]`` (FRD) as
-zero; with the angle of attack a state, that ties the pitch to the flight path
-*plus* an angle the filter learns while GPS holds the velocity and carries,
-with a random walk (``FilterSettings.aoa_rw_deg_rts``), through an outage.
-Without the state the model assumes zero angle of attack, which only a vehicle
-flying along its body axis keeps. Present when ``aoa_prior_sigma_deg`` > 0.
+attack, which its lift needs: it grows with load factor and falls with speed.
+The vehicle model (``FilterSettings.aoa_sigma_deg``) measures the velocity
+along the wind-normal axis ``[-sin alpha, 0, cos alpha]`` (FRD) as zero, which
+ties the pitch to the flight path plus ``alpha``. With the airframe's lift law
+(``aoa_lift_k_m``) ``alpha = w(V) (alpha_b + K n_w / V^2)`` follows every change
+of load and speed the array measures, and the block holds the law's offset
+``alpha_b`` (a slow random walk, ``aoa_rw_deg_rts``) and, with
+``aoa_lift_k_sigma_m``, the error of ``K`` (constant: mass, density and lift
+slope are never known exactly, and its effect grows with the load factor,
+which a random walk cannot describe). Without a law the state is ``alpha``
+itself. Without the block the model assumes zero angle of attack, which only a
+vehicle flying along its body axis keeps. Present when ``aoa_prior_sigma_deg`` > 0.
 """
 
 from __future__ import annotations
@@ -72,15 +77,15 @@ def b_quad(nq: int) -> slice:
 
 @dataclass(frozen=True)
 class StateLayout:
-    """Error-state size: ``nq`` rate-quadratic terms, ``n_dr`` position states, ``n_aoa`` (0/1)."""
+    """Error-state size: ``nq`` rate-quadratic terms, ``n_dr`` position states, ``n_aoa`` (0-2)."""
 
     nq: int
     n_dr: int = 0
     n_aoa: int = 0
 
     def __post_init__(self) -> None:
-        if self.n_aoa not in (0, 1):
-            raise ValueError(f"n_aoa must be 0 or 1, got {self.n_aoa}")
+        if self.n_aoa not in (0, 1, 2):
+            raise ValueError(f"n_aoa must be 0, 1 or 2, got {self.n_aoa}")
 
     @property
     def n(self) -> int:
@@ -94,7 +99,7 @@ class StateLayout:
 
     @property
     def aoa(self) -> slice:
-        """The angle-of-attack error (one state or empty)."""
+        """The angle-of-attack block (0, 1 or 2 states)."""
         start = N_BASE + self.nq + self.n_dr
         return slice(start, start + self.n_aoa)
 

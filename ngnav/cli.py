@@ -379,7 +379,13 @@ def cmd_consistency(args: argparse.Namespace) -> int:
 
     scn = _flight(args)
     out = consistency(
-        scn, args.runs, args.method, args.workers, progress=not args.json, profile_s=args.profile
+        scn,
+        args.runs,
+        args.method,
+        args.workers,
+        progress=not args.json,
+        profile_s=args.profile,
+        from_s=args.from_s,
     )
     if args.json:
         print(json.dumps(out, indent=2))
@@ -387,6 +393,7 @@ def cmd_consistency(args: argparse.Namespace) -> int:
     print(
         f"{out['scenario']}: {out['runs']} Monte Carlo runs, compensation {out['method']}, "
         "two-sided 95 % chi-square bounds on the run-averaged statistic"
+        + ("" if args.from_s is None else f", epochs from {args.from_s:g} s")
     )
     for name, b in out["blocks"].items():
         print(
@@ -398,12 +405,17 @@ def cmd_consistency(args: argparse.Namespace) -> int:
     for d in out["diverged"]:
         print(f"  run {d['run']} diverged and is left out: {d['reason']}")
     if "profile" in out:
-        print("  run-averaged NEES by window (3 dof blocks, all: 12 dof)")
-        print("    window s        pos    vel    att   rate     all")
+        aoa = "aoa" in out["profile"][0]
+        print(
+            "  run-averaged NEES by window (3 dof blocks, all: 12 dof"
+            + (", aoa: 1 dof)" if aoa else ")")
+        )
+        print("    window s        pos    vel    att   rate     all" + ("    aoa" if aoa else ""))
         for row in out["profile"]:
             print(
                 f"    {row['t0_s']:6.1f}-{row['t1_s']:6.1f}  {row['pos']:6.2f} {row['vel']:6.2f} "
                 f"{row['att']:6.2f} {row['rate']:6.2f} {row['all']:7.2f}"
+                + (f" {row['aoa']:6.2f}" if aoa else "")
             )
     return 0
 
@@ -510,6 +522,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         metavar="S",
         help="also print each NEES block's run average over windows of S seconds",
+    )
+    p.add_argument(
+        "--from",
+        dest="from_s",
+        type=float,
+        metavar="S",
+        help="leave the epochs before S seconds out of the statistics (default: whole run)",
     )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_consistency)

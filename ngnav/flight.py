@@ -21,9 +21,13 @@ and their derivatives:
 - ``a_w = [V_dot, omega_wz V, -omega_wy V]`` (the derivative of ``C_nw [V, 0, 0]``),
   ``f_b = C_bw (a_w - C_wn g_n)``.
 
-A real aircraft flies at an angle of attack that grows with its load factor
-and falls with its speed (lift ``n m g = rho V^2 S C_La alpha / 2``); the
-shipped scenarios schedule ``alpha`` per leg from that law (see their TOML).
+``alpha`` is either a scheduled profile or, with a :class:`LiftLaw`, the angle
+a real aircraft needs for the lift its flight path asks for:
+``alpha = w(V) (alpha0 + K n_w / V^2)``, with ``n_w = V omega_wy + g cos(theta)
+cos(phi)`` the exact wind-frame normal load (the pull-up's ``V theta_dot`` term
+included) and ``w(V)`` the lift-off blend (0 on the wheels). Its first and second
+derivatives, which the rate derivative needs, come from second-order jets of the
+profiles (a minimum-jerk profile's third derivative is exact too).
 
 Heading and position, the two integrals, come from three-point Gauss-Legendre
 quadrature of the same analytic derivatives over every sample interval (and,
@@ -62,6 +66,13 @@ class Transition:
     delta: float
 
 
+def _min_jerk_jerk(tau: np.ndarray) -> np.ndarray:
+    """Third derivative ``d3s/dtau3`` of :func:`~ngnav.motion.min_jerk_step` (0 outside [0, 1])."""
+    x = np.asarray(tau, dtype=float)
+    inside = (x >= 0.0) & (x <= 1.0)
+    return np.where(inside, 60.0 - 360.0 * x + 360.0 * x * x, 0.0)
+
+
 @dataclass(frozen=True)
 class Profile:
     """A scalar profile: ``initial + sum_i delta_i s((t - start_i) / duration_i)``."""
@@ -94,6 +105,93 @@ class Profile:
             ddvf[i0:i1] += tr.delta * dds / tr.duration_s**2
         return v, dv, ddv
 
+    def jerk(self, t_s: np.ndarray) -> np.ndarray:
+        """Third time derivative at the times (T,) (one-sided at the ramp ends)."""
+        t = np.asarray(t_s, dtype=float)
+        out = np.zeros(t.shape)
+        for tr in self.transitions:
+            out += tr.delta * _min_jerk_jerk((t - tr.start_s) / tr.duration_s) / tr.duration_s**3
+        return out
+
+
+#: A second-order jet: value, first and second time derivative (arrays of one shape).
+Jet = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def _jmul(a: Jet, b: Jet) -> Jet:
+    return (a[0] * b[0], a[1] * b[0] + a[0] * b[1], a[2] * b[0] + 2 * a[1] * b[1] + a[0] * b[2])
+
+
+def _jcompose(f: np.ndarray, df: np.ndarray, ddf: np.ndarray, a: Jet) -> Jet:
+    """The jet of ``f(a(t))`` from ``f, f', f''`` evaluated at ``a``."""
+    return (f, df * a[1], ddf * a[1] ** 2 + df * a[2])
+
+
+def _jaffine(a: Jet, scale: float, offset: float = 0.0) -> Jet:
+    return (scale * a[0] + offset, scale * a[1], scale * a[2])
+
+
+def _jcos(a: Jet) -> Jet:
+    return _jcompose(np.cos(a[0]), -np.sin(a[0]), -np.cos(a[0]), a)
+
+
+def _jsin(a: Jet) -> Jet:
+    return _jcompose(np.sin(a[0]), np.cos(a[0]), -np.sin(a[0]), a)
+
+
+def _jrecip(a: Jet, floor: float) -> Jet:
+    """``1 / max(a, floor)`` (constant where ``a`` is below the floor)."""
+    above = a[0] > floor
+    x = np.maximum(a[0], floor)
+    return (
+        1.0 / x,
+        np.where(above, -a[1] / x**2, 0.0),
+        np.where(above, 2 * a[1] ** 2 / x**3 - a[2] / x**2, 0.0),
+    )
+
+
+def _jstep(a: Jet, start: float, width: float) -> Jet:
+    """Minimum-jerk step of ``a`` from ``start`` over ``width``."""
+    s, ds, dds = min_jerk_step((a[0] - start) / width)
+    return _jcompose(s, ds / width, dds / width**2, a)
+
+
+@dataclass(frozen=True)
+class LiftLaw:
+    """Angle of attack from the lift a flight needs (see the module docstring).
+
+    ``alpha = w(V) (alpha0 + K n_w / V^2)``: steady lift ``n_w m = rho V^2 S C_La
+    (alpha - alpha0) / 2`` gives ``K = 2 (m / S) / (rho C_La)``.
+
+    Parameters
+    ----------
+    alpha0_rad : float
+        Zero-lift angle of attack of the body x axis, rad.
+    k_m : float
+        ``K``, m (wing loading over density and lift slope).
+    liftoff_speed_mps : float
+        Below 0.8 times this speed the aircraft is on its wheels (``alpha`` = 0: the
+        body x axis along the runway); ``w`` rises from 0 to 1 by a minimum-jerk step
+        up to this speed.
+    """
+
+    alpha0_rad: float
+    k_m: float
+    liftoff_speed_mps: float
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.k_m) and self.k_m > 0):
+            raise ValueError(f"lift k_m must be positive, got {self.k_m}")
+        if not (np.isfinite(self.liftoff_speed_mps) and self.liftoff_speed_mps > 0):
+            raise ValueError(f"liftoff_speed_mps must be positive, got {self.liftoff_speed_mps}")
+        if not (np.isfinite(self.alpha0_rad) and abs(self.alpha0_rad) < 0.5):
+            raise ValueError(f"alpha0 must be within +-0.5 rad, got {self.alpha0_rad}")
+
+    def weight(self, speed: Jet) -> Jet:
+        """The lift-off blend ``w(V)`` as a jet."""
+        v_lof = self.liftoff_speed_mps
+        return _jstep(speed, 0.8 * v_lof, 0.2 * v_lof)
+
 
 @dataclass(frozen=True)
 class FlightPlan:
@@ -118,6 +216,8 @@ class FlightPlan:
     aoa : Profile
         Angle of attack (rad): the body's nose-up pitch from the velocity, about
         body y. Zero by default (the body flies along its x axis).
+    lift : LiftLaw, optional
+        Angle of attack from the lift law instead (``aoa`` must then stay zero).
     """
 
     duration_s: float
@@ -128,6 +228,39 @@ class FlightPlan:
     heading0_rad: float = 0.0
     taxi_speed_mps: float = 2.0
     aoa: Profile = Profile(0.0)
+    lift: LiftLaw | None = None
+
+    def __post_init__(self) -> None:
+        if self.lift is not None and (self.aoa.initial != 0.0 or self.aoa.transitions):
+            raise ValueError("give an angle-of-attack profile or a lift law, not both")
+
+    def angle_of_attack(self, t_s: np.ndarray) -> Jet:
+        """Angle of attack (rad) and its first and second derivatives at the times (T,)."""
+        if self.lift is None:
+            return self.aoa.evaluate(t_s)
+        t = np.asarray(t_s, dtype=float)
+        lift = self.lift
+        phi = self.bank.evaluate(t)
+        th = self.pitch.evaluate(t)
+        dth = (th[1], th[2], self.pitch.jerk(t))
+        v = self.speed.evaluate(t)
+        vt = self.taxi_speed_mps
+        inv_v = _jrecip(v, 0.25 * vt)  # the blend below is 0 where the floor acts
+        tan, sec2 = np.tan(phi[0]), 1 / np.cos(phi[0]) ** 2
+        tan_phi = _jcompose(tan, sec2, 2 * sec2 * tan, phi)
+        coord = _jaffine(_jmul(tan_phi, inv_v), G0_MPS2)
+        dpsi = _jmul(_jstep(v, 0.5 * vt, 0.5 * vt), coord)
+        r = self.yaw_rate.evaluate(t)
+        dpsi = (dpsi[0] + r[0], dpsi[1] + r[1], dpsi[2] + r[2])
+        cphi, sphi, cth = _jcos(phi), _jsin(phi), _jcos(th)
+        w_y = _jmul(dth, cphi)
+        w_y2 = _jmul(_jmul(dpsi, sphi), cth)
+        w_y = (w_y[0] + w_y2[0], w_y[1] + w_y2[1], w_y[2] + w_y2[2])
+        n_w = _jmul(v, w_y)
+        grav = _jaffine(_jmul(cth, cphi), G0_MPS2)
+        n_w = (n_w[0] + grav[0], n_w[1] + grav[1], n_w[2] + grav[2])
+        alpha = _jaffine(_jmul(n_w, _jmul(inv_v, inv_v)), lift.k_m, lift.alpha0_rad)
+        return _jmul(lift.weight(v), alpha)
 
     def heading_rate(self, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Heading rate (rad/s) and its derivative (rad/s^2) at the times (T,)."""
@@ -303,7 +436,7 @@ def fly(plan: FlightPlan, rate_hz: float) -> FlightTruth:
     a_w = np.stack([dv, w_w[:, 2] * v, -w_w[:, 1] * v], axis=-1)
     f_w = a_w - np.einsum("tji,j->ti", c_nw, gravity_n_mps2())
     # the body: the wind frame pitched nose-up by alpha about the common y axis
-    al, dal, ddal = plan.aoa.evaluate(t)
+    al, dal, ddal = plan.angle_of_attack(t)
     ca, sa = np.cos(al), np.sin(al)
     zero, one = np.zeros_like(al), np.ones_like(al)
     c_bw = np.stack(

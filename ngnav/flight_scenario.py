@@ -7,7 +7,10 @@ moving bank, pitch (of the flight path), speed, yaw rate and angle of attack
 to its targets with a minimum-jerk ramp of ``ramp_s`` and holds them to the
 end of the leg; a key a leg leaves out keeps its previous value.
 ``[flight] initial_speed_mps`` and ``initial_aoa_deg`` give the values at
-t = 0 (both 0 by default: at rest, body along the velocity).
+t = 0 (both 0 by default: at rest, body along the velocity). Instead of
+scheduling the angle of attack, ``[flight] lift = { alpha0_deg, k_m,
+liftoff_speed_mps }`` makes it the one the lift law asks for
+(:class:`ngnav.flight.LiftLaw`).
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ngnav.flight import FlightPlan, Profile, Transition
+from ngnav.flight import FlightPlan, LiftLaw, Profile, Transition
 from ngnav.runconfig import FilterSettings
 from ngnav.scenario import _build, apply_overrides, read_scenario_data
 from ngnav.sensors import PRESET_NAMES, AccelerometerSpec, sensor_preset
@@ -133,6 +136,7 @@ class FlightScenario:
     legs: tuple[Leg, ...]
     initial_speed_mps: float = 0.0
     initial_aoa_deg: float = 0.0
+    lift: LiftLaw | None = None
 
     def plan(self) -> FlightPlan:
         """The flight's bank, pitch, speed, yaw-rate and angle-of-attack profiles."""
@@ -171,6 +175,7 @@ class FlightScenario:
             yaw_rate=Profile(0.0, tuple(trans["yaw"])),
             heading0_rad=float(np.deg2rad(self.initial.heading_deg)),
             aoa=Profile(aoa0, tuple(trans["aoa"])),
+            lift=self.lift,
         )
 
 
@@ -217,7 +222,7 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
     if not isinstance(flight, dict) or "legs" not in flight:
         raise ValueError(f"{source}: missing [flight] with legs")
     starts = ("initial_speed_mps", "initial_aoa_deg")
-    extra = sorted(set(flight) - {"legs", *starts})
+    extra = sorted(set(flight) - {"legs", "lift", *starts})
     if extra:
         raise ValueError(f"{source}: unknown key flight.{extra[0]}")
     start_values = {}
@@ -230,8 +235,27 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
     for i, leg in enumerate(legs):
         if leg.aoa_deg is not None and not -30.0 < leg.aoa_deg < 30.0:
             raise ValueError(f"{source}: flight.legs[{i}].aoa_deg must be in (-30, 30) deg")
+    lift = None
+    if "lift" in flight:
+        lift_keys = ("alpha0_deg", "k_m", "liftoff_speed_mps")
+        table = flight["lift"]
+        if not isinstance(table, dict) or set(table) != set(lift_keys):
+            raise ValueError(f"{source}: flight.lift must be a table of exactly {lift_keys}")
+        for key in lift_keys:
+            if isinstance(table[key], bool) or not isinstance(table[key], int | float):
+                raise ValueError(f"{source}: flight.lift.{key}: expected a number")
+        try:
+            lift = LiftLaw(
+                float(np.deg2rad(table["alpha0_deg"])),
+                float(table["k_m"]),
+                float(table["liftoff_speed_mps"]),
+            )
+        except ValueError as exc:
+            raise ValueError(f"{source}: flight.lift: {exc}") from None
+        if start_values["initial_aoa_deg"] or any(leg.aoa_deg is not None for leg in legs):
+            raise ValueError(f"{source}: flight.lift replaces aoa_deg and initial_aoa_deg")
     parts["sensor"].spec()  # validate the preset now, naming the file
-    return FlightScenario(name=source, legs=legs, **start_values, **parts)
+    return FlightScenario(name=source, legs=legs, **start_values, lift=lift, **parts)
 
 
 def is_flight_scenario(name_or_path: str) -> bool:

@@ -28,7 +28,9 @@ truth to separate files.
                    heading_sigma_deg, rate_sigma_dps
     [filter]       rate_hz, compensation, window, gate_probability, rate_range_dps,
                    sideslip_sigma_deg, aoa_sigma_deg, aoa_prior_deg,
-                   aoa_prior_sigma_deg, aoa_rw_deg_rts, gps_gap_reset_s, fusion_lag_s,
+                   aoa_prior_sigma_deg, aoa_rw_deg_rts, aoa_lift_k_m, aoa_lift_k_sigma_m,
+                   liftoff_speed_mps,
+                   gps_gap_reset_s, fusion_lag_s,
                    hold_wdot_sigma_rps2, hold_force_sigma_mps2
 """
 
@@ -96,6 +98,19 @@ class FilterSettings:
     ``alpha`` = 0 (the land-vehicle non-holonomic constraint), which no
     aircraft keeps: lift needs angle of attack.
 
+    ``aoa_lift_k_m`` > 0 gives the state the airframe's lift law:
+    ``alpha = w(V) (alpha_b + K n_w / V^2)``, ``K = 2 (m/S) / (rho C_La)`` in m,
+    with the wind-frame normal load ``n_w`` from the array's specific force and
+    ``V`` the speed, so the angle of attack follows every change of load factor
+    and speed as the lift asks; the state is then the law's offset ``alpha_b``
+    (the zero-lift angle, prior ``aoa_prior_deg``) and its random walk covers
+    only what the law leaves out. ``aoa_lift_k_sigma_m`` > 0 carries the error of
+    ``K`` (mass, density and lift slope are never known exactly) as a second,
+    constant state with that prior 1-sigma: its effect grows with the load factor,
+    which a random walk on the offset cannot describe. With
+    ``liftoff_speed_mps`` > 0, ``w(V)`` is 0 below 0.8 times that speed (on the
+    wheels: no angle of attack), 1 from it up, a minimum-jerk step between.
+
     ``gps_gap_reset_s``: the first fix after this long without an accepted
     GPS position (an outage) is not fused but, if it passes the gate, puts
     position and velocity on the fix (``NavFilter.reset_to_fix``; PX4 EKF2
@@ -122,6 +137,9 @@ class FilterSettings:
     aoa_prior_deg: float = 0.0
     aoa_prior_sigma_deg: float = 0.0
     aoa_rw_deg_rts: float = 0.0
+    aoa_lift_k_m: float = 0.0
+    aoa_lift_k_sigma_m: float = 0.0
+    liftoff_speed_mps: float = 0.0
     gps_gap_reset_s: float = 5.0
     fusion_lag_s: float = 0.1
     hold_wdot_sigma_rps2: float = 2.0
@@ -147,6 +165,15 @@ class FilterSettings:
                 "filter.aoa_prior_sigma_deg > 0 needs filter.aoa_sigma_deg > 0: the "
                 "angle-of-attack state is observed only through that model"
             )
+        for name in ("aoa_lift_k_m", "aoa_lift_k_sigma_m", "liftoff_speed_mps"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and 0.0 <= v <= 1000.0):
+                raise ValueError(f"filter.{name} must be a number in [0, 1000], got {v}")
+            if v > 0 and self.aoa_prior_sigma_deg == 0:
+                raise ValueError(
+                    f"filter.{name} > 0 needs filter.aoa_prior_sigma_deg > 0 "
+                    "(the angle-of-attack state)"
+                )
         if self.aoa_rw_deg_rts > 0 and self.aoa_prior_sigma_deg == 0:
             raise ValueError(
                 "filter.aoa_rw_deg_rts > 0 needs filter.aoa_prior_sigma_deg > 0 "

@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from filters.ekf import LATERAL, SIDESLIP_REMAINDER_UPDATES, VERTICAL, FilterNoise, NavFilter
-from filters.state import ATT, RATE, VEL
+from filters.state import ATT, B_F, RATE, VEL
 from ngnav.flight import quat_from_euler
 from ngnav.frontend import ArraySolver
 from ngnav.layout import ArrayLayout, nine_accelerometer_cube
@@ -121,6 +121,60 @@ def test_angle_of_attack_model_and_jacobian(rotvec, vel, aoa):
     ] == pytest.approx(0.0, abs=1e-15)
 
 
+@pytest.mark.parametrize("speed_scale", [1.0, 0.72])  # flying; inside the lift-off blend
+def test_lift_law_jacobian_matches_finite_differences(speed_scale):
+    """With the airframe's lift law the angle of attack is ``w (alpha_b + K n_w / V^2)``,
+    so the vertical model also depends on the velocity (through V), the force bias
+    (through n_w), the offset and K: each Jacobian column against central differences
+    of the whole chain (``set_load`` then the model; the angle inside ``n_w`` held)."""
+    layout = nine_accelerometer_cube(0.1)
+    solver = ArraySolver(layout, np.full(9, 1e-3))
+    cov = solver.covariance()
+    nf = NavFilter(
+        FilterNoise(cov, cov, cov * 1e-6),
+        PAIRS,
+        np.zeros(3),
+        aoa_prior_sigma_rad=0.02,
+        aoa_lift_k_m=18.0,
+        liftoff_speed_mps=40.0,
+        aoa_lift_k_sigma_m=0.9,
+    )
+    initialise_level(nf)
+    assert nf.layout.n_aoa == 2
+    q = quat_from_rotvec(np.array([0.4, -0.1, 1.2]))
+    vel = np.array([30.0, -40.0, 3.0]) * speed_scale  # 50.1 m/s, or 36 m/s (w = 0.79)
+    f_b = np.array([1.5, 0.3, -17.0])
+    nf.q, nf.aoa_b = q, np.deg2rad(-1.2)
+
+    def model(v, d_bf=None, d_b=0.0, d_k=0.0):
+        nf.vel, nf._lift_u, nf._lift_w = v, 0.0, 1.0  # same angle inside n_w every time
+        nf.set_load(f_b - (np.zeros(3) if d_bf is None else d_bf))  # f_true = f - d_bias
+        nf.aoa_b += d_b
+        nf.aoa_k += d_k
+        y = nf.body_velocity_model(q, v, VERTICAL, nf.aoa)[0]
+        nf.aoa_b -= d_b
+        nf.aoa_k -= d_k
+        return y
+
+    model(vel)
+    _, h = nf.body_velocity_model(q, vel, VERTICAL, nf.aoa)
+    eps = 1e-6
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = eps
+        fd = (model(vel + d) - model(vel - d)) / (2 * eps)
+        assert h[0, VEL][k] == pytest.approx(fd, rel=1e-6, abs=1e-9)
+        fd = (model(vel, d_bf=d) - model(vel, d_bf=-d)) / (2 * eps)
+        assert h[0, B_F][k] == pytest.approx(fd, rel=1e-6, abs=1e-9)
+    ia = nf.layout.aoa.start
+    fd = (model(vel, d_b=eps) - model(vel, d_b=-eps)) / (2 * eps)
+    assert h[0, ia] == pytest.approx(fd, rel=1e-6)
+    fd = (model(vel, d_k=eps) - model(vel, d_k=-eps)) / (2 * eps)
+    assert h[0, ia + 1] == pytest.approx(fd, rel=1e-6)
+    assert abs(h[0, ia + 1]) > 0 and abs(h[0, B_F][2]) > 0  # the terms are exercised
+    assert (nf._lift_dw > 0) == (speed_scale < 1.0)
+
+
 @pytest.mark.parametrize(
     ("axis", "aoa_state"), [(LATERAL, False), (VERTICAL, False), (VERTICAL, True)]
 )
@@ -139,7 +193,7 @@ def test_body_velocity_second_order_terms_match_monte_carlo(axis, aoa_state):
     rng = np.random.default_rng(7)
     nf.q = quat_from_rotvec(np.array([0.3, -0.1, 2.0]))
     nf.vel = np.array([14.0, -15.0, 1.0])
-    nf.aoa = np.deg2rad(1.5) if aoa_state else 0.0
+    nf.aoa_b = np.deg2rad(1.5) if aoa_state else 0.0  # no lift law: the state is the angle
     idx = np.r_[6:9, 3:6, nf.layout.aoa.start] if aoa_state else np.r_[6:9, 3:6]
     d = idx.size
     a = rng.normal(size=(d, d))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from filters.ekf import CovarianceError, FilterNoise, LostTrackError, NavFilter
-from filters.evaluate import run_errors, summarise
+from filters.evaluate import chi2_bounds, run_errors, summarise
 from filters.experiments import (
     EvaluationRow,
     consistency,
@@ -249,14 +249,24 @@ def test_simulate_then_run_cli(tmp_path):
     assert bad.returncode == 2 and "config.toml: no such file" in bad.stderr
 
 
+#: The hand-over transient of ``tactical`` ends by this time (s); see
+#: :func:`test_hand_over_is_consistent`.
+HAND_OVER_S = 10.0
+
+
 @pytest.fixture(scope="module")
 def monte_carlo():
-    return consistency(load_flight("tactical", SHORT), runs=6, workers=2, profile_s=20.0)
+    # the scenario as shipped (1 kHz array): about 45 s on two workers
+    return consistency(
+        load_flight("tactical"), runs=6, workers=2, profile_s=2.0, from_s=HAND_OVER_S
+    )
 
 
 def test_consistency_small_monte_carlo(monte_carlo):
-    """Every NEES block and every NIS inside the 95 % bounds on >= 90 % of epochs (6 runs)."""
+    """Every NEES block (the angle of attack too) and every NIS inside the 95 % bounds
+    on >= 90 % of the epochs after the hand-over (6 runs; measured 94.2-99.8 %)."""
     out = monte_carlo
+    assert out["from_s"] == HAND_OVER_S
     b = out["blocks"]
     for name in (
         "NEES pos",
@@ -264,6 +274,7 @@ def test_consistency_small_monte_carlo(monte_carlo):
         "NEES att",
         "NEES rate",
         "NEES all",
+        "NEES aoa",
         "NIS gps pos",
         "NIS gps vel",
         "NIS rate",
@@ -271,10 +282,41 @@ def test_consistency_small_monte_carlo(monte_carlo):
         assert b[name]["share_inside"] >= 0.9, (name, b[name])
         share = b[name]["share_inside"] + b[name]["share_below"] + b[name]["share_above"]
         assert share == pytest.approx(1.0)
-    # the 60 s flight in three 20 s windows, each block's mean finite
-    assert [round(r["t0_s"]) for r in out["profile"]] == [0, 20, 40]
+    # the 60 s flight in 2 s windows from its start (the profile covers the whole run)
+    assert [round(r["t0_s"]) for r in out["profile"]] == list(range(0, 60, 2))
     assert all(np.isfinite(r[k]) for r in out["profile"] for k in ("pos", "att", "all"))
     json.dumps(out)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="known miss (README, 'the hand-over'): in the straight flight after hand-over, "
+    "while the angular-acceleration bias is learnt, the rate products' Jacobian reads "
+    "rate errors as information; the attitude and angle of attack turn optimistic "
+    "(2 s windows at 2-6 s: attitude NEES 5-7.5 against a bound of 5.25)",
+)
+def test_hand_over_is_consistent(monte_carlo):
+    """Every 2 s window's attitude and angle-of-attack NEES inside the 6-run bounds,
+    the hand-over included. Strict: it fails loudly once the transient is fixed."""
+    lo3, hi3 = chi2_bounds(3, 6)
+    lo1, hi1 = chi2_bounds(1, 6)
+    for row in monte_carlo["profile"]:
+        assert lo3 <= row["att"] <= hi3, row
+        assert lo1 <= row["aoa"] <= hi1, row
+
+
+def test_truth_angle_of_attack_is_the_scheduled_one(tactical):
+    """The evaluation's truth angle of attack (the body x-z angle of the velocity) is
+    the flight plan's (its lift law's), 1.9 deg at the 1 g start and 4.8-5.3 deg in the
+    2 g turns."""
+    from filters.evaluate import truth_aoa_rad
+
+    truth = tactical.truth
+    idx = np.arange(0, truth.t_s.shape[0], 50)
+    plan = load_flight("tactical", SHORT).plan()
+    alpha = truth_aoa_rad(truth, idx)
+    np.testing.assert_allclose(alpha, plan.angle_of_attack(truth.t_s[idx])[0], atol=1e-12)
+    assert 1.8 < np.rad2deg(alpha[0]) < 2.0 and 4.7 < np.rad2deg(alpha.max()) < 5.6
 
 
 def test_nees_profile_windows():
@@ -375,6 +417,9 @@ def test_a_long_gap_of_held_samples_widens_the_covariance(tactical):
         "aoa_sigma_deg": 0.0,
         "aoa_prior_sigma_deg": 0.0,
         "aoa_rw_deg_rts": 0.0,
+        "aoa_lift_k_m": 0.0,
+        "aoa_lift_k_sigma_m": 0.0,
+        "liftoff_speed_mps": 0.0,
     }
     worst_nm, _ = worst_att_nees(replace(sim.config, filter=replace(sim.config.filter, **no_model)))
     assert worst_nm < chi2.ppf(0.999, 3)

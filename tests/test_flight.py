@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ngnav.conventions import G0_MPS2
-from ngnav.flight import FlightPlan, Profile, Transition, fly, quat_from_euler
+from ngnav.flight import FlightPlan, LiftLaw, Profile, Transition, fly, quat_from_euler
 from ngnav.flight_scenario import load_flight
 from ngnav.geodesy import LocalTangentPlane, ecef_to_geodetic, geodetic_to_ecef
 from ngnav.rotation import dcm_from_quat, euler_from_quat, quat_conjugate, quat_multiply
@@ -39,6 +39,57 @@ def test_rate_derivative_is_the_exact_derivative_of_the_rate():
         smooth = np.min(np.abs(t[:, None] - knots), axis=1) > 0.05
         errs.append(np.abs(fd - tr.omega_dot_b_rps2[1:-1])[smooth].max())
     assert errs[1] < errs[0] / 3.5 and errs[2] < errs[1] / 3.5
+
+
+def _lift_plan() -> FlightPlan:
+    """From the runway: take-off run, rotation, a pull-up into a climbing banked turn."""
+    return FlightPlan(
+        duration_s=14.0,
+        bank=Profile(0.0, (Transition(8.0, 1.5, np.deg2rad(35)),)),
+        pitch=Profile(0.0, (Transition(5.0, 2.0, np.deg2rad(10)), Transition(10.0, 2.5, -0.1))),
+        speed=Profile(0.0, (Transition(0.0, 6.0, 22.0), Transition(9.0, 3.0, 4.0))),
+        heading0_rad=-0.4,
+        lift=LiftLaw(np.deg2rad(-1.0), 2.0, 18.0),
+    )
+
+
+def test_lift_law_flight_is_exact():
+    """The lift law's angle of attack is what the truth's own specific force asks for,
+    and its rate derivative is the exact derivative of its rate (second-order
+    convergence of central differences, away from the ramp ends)."""
+    plan = _lift_plan()
+    tr = fly(plan, 1000.0)
+    c_nb = dcm_from_quat(tr.q_nb)
+    v_b = np.einsum("tji,tj->ti", c_nb, tr.vel_ned_mps)
+    speed = np.linalg.norm(tr.vel_ned_mps, axis=1)
+    flying = speed > 18.0
+    alpha = np.arctan2(v_b[:, 2], v_b[:, 0])
+    # wind-frame normal load from the body's specific force: n_w = sin(a) f_x - cos(a) f_z
+    n_w = np.sin(alpha) * tr.f_b_mps2[:, 0] - np.cos(alpha) * tr.f_b_mps2[:, 2]
+    law = np.deg2rad(-1.0) + 2.0 * n_w / np.maximum(speed, 1.0) ** 2
+    np.testing.assert_allclose(alpha[flying], law[flying], rtol=0, atol=1e-12)
+    # the law is exercised: about 2.5 deg at lift-off, less as the push-over unloads the wing
+    assert np.ptp(np.rad2deg(alpha[flying])) > 1.0 and np.rad2deg(alpha[flying]).min() > 0.0
+    rest = speed < 0.8 * 18.0
+    assert np.abs(alpha[rest & (speed > 1.0)]).max() < 1e-12  # on its wheels: none
+    # ramp ends, and where the speed crosses the ends of the lift-off and taxi blends
+    t_fine = np.linspace(0.0, plan.duration_s, 140_001)
+    v_fine = plan.speed.evaluate(t_fine)[0]
+    crossings = [t_fine[np.argmax(v_fine >= v)] for v in (1.0, 2.0, 0.8 * 18.0, 18.0)]
+    knots = np.array([0.0, 5.0, 6.0, 7.0, 8.0, 9.0, 9.5, 10.0, 12.0, 12.5, *crossings])
+    errs = []
+    for rate in (200.0, 400.0, 800.0):
+        tr = fly(plan, rate)
+        fd = (tr.omega_b_rps[2:] - tr.omega_b_rps[:-2]) * rate / 2
+        t = tr.t_s[1:-1]
+        smooth = np.min(np.abs(t[:, None] - knots), axis=1) > 0.05
+        errs.append(np.abs(fd - tr.omega_dot_b_rps2[1:-1])[smooth].max())
+    assert errs[1] < errs[0] / 3.5 and errs[2] < errs[1] / 3.5
+    dq = (tr.q_nb[2:] - tr.q_nb[:-2]) * 400.0
+    w = 2 * quat_multiply(quat_conjugate(tr.q_nb[1:-1]), dq)[:, 1:]
+    assert np.abs(w - tr.omega_b_rps[1:-1]).max() < 1e-4
+    with pytest.raises(ValueError, match="not both"):
+        dataclasses.replace(plan, aoa=Profile(0.05))
 
 
 def test_rate_is_the_rate_of_the_attitude():
