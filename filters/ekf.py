@@ -727,14 +727,36 @@ class NavFilter:
         """d alpha / d(AOA states): ``w [1, u]`` (or ``[w]`` with the offset alone)."""
         return self._lift_w * np.array([1.0, self._lift_u])[: self.layout.n_aoa]
 
+    def aoa_jacobian(self, vel_ned_mps: np.ndarray) -> np.ndarray:
+        """``d alpha / d(error state)`` (n,) at the velocity ``vel_ned_mps`` (NED, m/s).
+
+        ``w [1, u]`` for the law's offset and ``K``; through ``u = n_w / V^2``
+        (:meth:`set_load`), ``-2 w K u v^T / V^2`` for the velocity and
+        ``-w K [sin a, 0, -cos a] / V^2`` for the specific-force bias; through the
+        lift-off blend ``w(V)``, ``w'(V) (alpha_b + K u) v^T / V``. Zero without the
+        ``AOA`` state.
+        """
+        j = np.zeros(self.layout.n)
+        if not self.layout.n_aoa:
+            return j
+        j[self.layout.aoa] = self._aoa_gradient()
+        speed2 = float(vel_ned_mps @ vel_ned_mps)
+        if speed2 <= 1.0:
+            return j
+        if self._lift_dw:
+            lift = self.aoa_b + self.aoa_k * self._lift_u
+            j[VEL] += self._lift_dw * lift * vel_ned_mps / np.sqrt(speed2)
+        if self.aoa_k > 0.0:
+            wk = self._lift_w * self.aoa_k / speed2
+            j[VEL] += -2.0 * wk * self._lift_u * vel_ned_mps
+            j[B_F] += -wk * self._lift_axis
+        return j
+
     @property
     def aoa_sigma(self) -> float:
-        """1-sigma of :attr:`aoa`, rad (0 without the ``AOA`` state)."""
-        if not self.layout.n_aoa:
-            return 0.0
-        ia = self.layout.aoa
-        j = self._aoa_gradient()
-        return float(np.sqrt(j @ self.P[ia, ia] @ j))
+        """1-sigma of :attr:`aoa`, rad, through :meth:`aoa_jacobian` (0 without the state)."""
+        j = self.aoa_jacobian(self.vel)
+        return float(np.sqrt(j @ self.P @ j))
 
     def set_load(self, f_b_mps2: np.ndarray) -> None:
         """Feed the lift law the block's specific force (FRD, m/s^2, biases removed).
@@ -765,10 +787,7 @@ class NavFilter:
         angle of attack ``aoa_rad``: the angle-of-attack model; ``e_z`` at zero). With
         the ``AOA`` state the vertical model's Jacobian includes
         ``d/dalpha = -t_b . C^T v``, ``t_b = [cos alpha, 0, sin alpha]`` (the wind x axis),
-        times ``d alpha / d(states)``: ``w [1, u]`` for the law's offset and ``K``, and,
-        through ``u = n_w / V^2`` (:meth:`set_load`), ``-2 w K u v^T / V^2`` for the
-        velocity and ``-w K [sin a, 0, -cos a] / V^2`` for the specific-force bias, and
-        through the lift-off blend ``w(V)``, ``w'(V) (alpha_b + K u) v^T / V``.
+        times :meth:`aoa_jacobian`.
         """
         c = dcm_from_quat(q_nb)
         n_b, t_b = _constraint_axes(axis, aoa_rad)
@@ -777,17 +796,7 @@ class NavFilter:
         h[0, VEL] = row
         h[0, ATT] = row @ skew(vel_ned_mps)
         if axis == VERTICAL and self.layout.n_aoa:
-            # d alpha / d(alpha_b, K) = w [1, u] (w the lift-off blend)
-            dh_da = -float((c @ t_b) @ vel_ned_mps)
-            h[0, self.layout.aoa] = dh_da * self._aoa_gradient()
-            speed2 = float(vel_ned_mps @ vel_ned_mps)
-            if self._lift_dw and speed2 > 1.0:
-                lift = self.aoa_b + self.aoa_k * self._lift_u
-                h[0, VEL] += dh_da * self._lift_dw * lift * vel_ned_mps / np.sqrt(speed2)
-            if self.aoa_k > 0.0 and speed2 > 1.0:
-                wk = self._lift_w * self.aoa_k / speed2
-                h[0, VEL] += dh_da * (-2.0 * wk * self._lift_u) * vel_ned_mps
-                h[0, B_F] += dh_da * (-wk) * self._lift_axis
+            h[0] += -float((c @ t_b) @ vel_ned_mps) * self.aoa_jacobian(vel_ned_mps)
         return float(row @ vel_ned_mps), h
 
     def sideslip_model(self, q_nb: np.ndarray, vel_ned_mps: np.ndarray) -> tuple[float, np.ndarray]:

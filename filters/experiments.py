@@ -247,7 +247,7 @@ def _events(sim: SimulatedRun, scn: FlightScenario, res: RunResult, errs: RunErr
 
 
 # --------------------------------------------------------------------- Monte Carlo
-def _one_run(scn: FlightScenario, i: int, method: str, from_s: float = -np.inf) -> dict:
+def _one_run(scn: FlightScenario, i: int, method: str) -> dict:
     sim = simulate_flight(scn, i)
     try:
         res = run_filter(
@@ -273,9 +273,11 @@ def _one_run(scn: FlightScenario, i: int, method: str, from_s: float = -np.inf) 
         "run": i,
         "nees": ne,
         "t_s": res.estimates.t_s,
-        "nis_pos": np.where(keep & (inn.t_s >= from_s), inn.nis_pos, np.nan),
-        "nis_vel": np.where(inn.t_s >= from_s, inn.nis_vel, np.nan),
-        "rate_nis": np.where(res.rate_nis_t_s >= from_s, res.rate_nis, np.nan),
+        "nis_pos": np.where(keep, inn.nis_pos, np.nan),
+        "nis_vel": inn.nis_vel,
+        "t_fix_s": inn.t_s,
+        "rate_nis": res.rate_nis,
+        "rate_t_s": res.rate_nis_t_s,
         "rate_dim": res.rate_dim,
         "att_rms_deg": float(np.rad2deg(np.sqrt(np.mean(np.sum(errs.att_ned_rad**2, axis=1))))),
     }
@@ -350,9 +352,9 @@ def consistency(
     the NIS (they are meant to fail it). A run whose covariance check fails
     is listed under ``diverged`` and left out of the averages (``runs`` counts
     the runs averaged): a divergence is a result to report, not a crash.
-    ``from_s`` leaves the epochs before that time (s) out of every block's
-    statistics (to judge a filter after a start-up transient; the whole run is
-    the default); the profile still covers the whole run.
+    ``from_s`` adds ``blocks_from``: every block's statistics over the epochs from
+    that time (s) on (to judge a filter after a start-up transient); ``blocks`` and
+    the profile cover the whole run.
     ``profile_s`` adds ``profile``: the NEES blocks' means over windows of that
     many seconds (:func:`nees_profile`).
     """
@@ -367,8 +369,7 @@ def consistency(
     chunk = max(1, workers)
     for start in range(0, runs, chunk):
         tasks = [
-            dask.delayed(_one_run)(scn, i, method, -np.inf if from_s is None else from_s)
-            for i in range(start, min(runs, start + chunk))
+            dask.delayed(_one_run)(scn, i, method) for i in range(start, min(runs, start + chunk))
         ]
         if workers > 1:
             results += dask.compute(*tasks, scheduler="processes", num_workers=workers)
@@ -396,17 +397,27 @@ def consistency(
     if "aoa" in results[0]["nees"]:
         dims["aoa"] = 1  # the angle-of-attack state (NaN where the truth has none)
     averages = {}
-    t_s = results[0]["t_s"]
-    after = t_s >= (-np.inf if from_s is None else from_s)
     for name, d in dims.items():
-        per_run = [r["nees"][name] for r in results]
-        out["blocks"][f"NEES {name}"] = _block([x[after] for x in per_run], d, runs)[0]
-        averages[name] = _block(per_run, d, runs)[1]
+        out["blocks"][f"NEES {name}"], averages[name] = _block(
+            [r["nees"][name] for r in results], d, runs
+        )
     for key, d in (("nis_pos", 3), ("nis_vel", 3)):
         out["blocks"][f"NIS gps {key[4:]}"] = _block([r[key] for r in results], d, runs)[0]
     nq = results[0]["rate_dim"]
     if nq:
         out["blocks"]["NIS rate"] = _block([r["rate_nis"] for r in results], nq, runs)[0]
+    if from_s is not None:
+        after = results[0]["t_s"] >= from_s
+        out["blocks_from"] = {
+            f"NEES {name}": _block([r["nees"][name][after] for r in results], d, runs)[0]
+            for name, d in dims.items()
+        }
+        for key, d in (("nis_pos", 3), ("nis_vel", 3)):
+            late = [r[key][r["t_fix_s"] >= from_s] for r in results]
+            out["blocks_from"][f"NIS gps {key[4:]}"] = _block(late, d, runs)[0]
+        if nq:
+            late = [r["rate_nis"][r["rate_t_s"] >= from_s] for r in results]
+            out["blocks_from"]["NIS rate"] = _block(late, nq, runs)[0]
     if profile_s is not None:
         out["profile"] = nees_profile(results[0]["t_s"], averages, profile_s)
     out["att_rms_deg_median"] = float(np.median([r["att_rms_deg"] for r in results]))

@@ -393,14 +393,19 @@ def cmd_consistency(args: argparse.Namespace) -> int:
     print(
         f"{out['scenario']}: {out['runs']} Monte Carlo runs, compensation {out['method']}, "
         "two-sided 95 % chi-square bounds on the run-averaged statistic"
-        + ("" if args.from_s is None else f", epochs from {args.from_s:g} s")
     )
-    for name, b in out["blocks"].items():
-        print(
-            f"  {name:14s} dim {b['dim']:2d}  bounds [{b['lower']:.2f}, {b['upper']:.2f}]  "
-            f"mean {b['mean']:7.2f}  inside {100 * b['share_inside']:5.1f} % of epochs "
-            f"(below {100 * b['share_below']:4.1f} %, above {100 * b['share_above']:4.1f} %)"
-        )
+    sections = [("", out["blocks"])]
+    if "blocks_from" in out:
+        sections.append((f"  from {out['from_s']:g} s on:", out["blocks_from"]))
+    for title, blocks in sections:
+        if title:
+            print(title)
+        for name, b in blocks.items():
+            print(
+                f"  {name:14s} dim {b['dim']:2d}  bounds [{b['lower']:.2f}, {b['upper']:.2f}]  "
+                f"mean {b['mean']:7.2f}  inside {100 * b['share_inside']:5.1f} % of epochs "
+                f"(below {100 * b['share_below']:4.1f} %, above {100 * b['share_above']:4.1f} %)"
+            )
     print(f"  median attitude RMS over runs: {out['att_rms_deg_median']:.3f} deg")
     for d in out["diverged"]:
         print(f"  run {d['run']} diverged and is left out: {d['reason']}")
@@ -528,7 +533,7 @@ def build_parser() -> argparse.ArgumentParser:
         dest="from_s",
         type=float,
         metavar="S",
-        help="leave the epochs before S seconds out of the statistics (default: whole run)",
+        help="also print every block's statistics over the epochs from S seconds on",
     )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_consistency)

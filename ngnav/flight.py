@@ -187,6 +187,16 @@ class LiftLaw:
         if not (np.isfinite(self.alpha0_rad) and abs(self.alpha0_rad) < 0.5):
             raise ValueError(f"alpha0 must be within +-0.5 rad, got {self.alpha0_rad}")
 
+    def drawn(self, alpha0_sigma_rad: float, k_sigma_m: float, rng: np.random.Generator) -> LiftLaw:
+        """One aircraft of this type: ``alpha0`` and ``K`` drawn around this law's values
+        with the given 1-sigmas (rigging, payload, the day's density), the lift-off speed
+        kept."""
+        return LiftLaw(
+            self.alpha0_rad + rng.normal(0.0, alpha0_sigma_rad),
+            self.k_m + rng.normal(0.0, k_sigma_m),
+            self.liftoff_speed_mps,
+        )
+
     def weight(self, speed: Jet) -> Jet:
         """The lift-off blend ``w(V)`` as a jet."""
         v_lof = self.liftoff_speed_mps

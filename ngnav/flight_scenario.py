@@ -10,7 +10,9 @@ end of the leg; a key a leg leaves out keeps its previous value.
 t = 0 (both 0 by default: at rest, body along the velocity). Instead of
 scheduling the angle of attack, ``[flight] lift = { alpha0_deg, k_m,
 liftoff_speed_mps }`` makes it the one the lift law asks for
-(:class:`ngnav.flight.LiftLaw`).
+(:class:`ngnav.flight.LiftLaw`): the aircraft type's law. ``[flight] lift_scatter
+= { alpha0_deg, k_m }`` gives how one aircraft of the type differs from it (1-sigma);
+each simulated run then flies its own, drawn from its run's generator.
 """
 
 from __future__ import annotations
@@ -137,6 +139,8 @@ class FlightScenario:
     initial_speed_mps: float = 0.0
     initial_aoa_deg: float = 0.0
     lift: LiftLaw | None = None
+    #: 1-sigma of one aircraft's (alpha0 rad, K m) about the type's law, or None.
+    lift_scatter: tuple[float, float] | None = None
 
     def plan(self) -> FlightPlan:
         """The flight's bank, pitch, speed, yaw-rate and angle-of-attack profiles."""
@@ -222,7 +226,7 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
     if not isinstance(flight, dict) or "legs" not in flight:
         raise ValueError(f"{source}: missing [flight] with legs")
     starts = ("initial_speed_mps", "initial_aoa_deg")
-    extra = sorted(set(flight) - {"legs", "lift", *starts})
+    extra = sorted(set(flight) - {"legs", "lift", "lift_scatter", *starts})
     if extra:
         raise ValueError(f"{source}: unknown key flight.{extra[0]}")
     start_values = {}
@@ -254,8 +258,21 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
             raise ValueError(f"{source}: flight.lift: {exc}") from None
         if start_values["initial_aoa_deg"] or any(leg.aoa_deg is not None for leg in legs):
             raise ValueError(f"{source}: flight.lift replaces aoa_deg and initial_aoa_deg")
+    scatter = None
+    if "lift_scatter" in flight:
+        table = flight["lift_scatter"]
+        if lift is None:
+            raise ValueError(f"{source}: flight.lift_scatter needs flight.lift")
+        if not isinstance(table, dict) or set(table) != {"alpha0_deg", "k_m"}:
+            raise ValueError(f"{source}: flight.lift_scatter must be a table of alpha0_deg, k_m")
+        vals = [table["alpha0_deg"], table["k_m"]]
+        if any(isinstance(v, bool) or not isinstance(v, int | float) or v < 0 for v in vals):
+            raise ValueError(f"{source}: flight.lift_scatter: expected numbers >= 0")
+        scatter = (float(np.deg2rad(vals[0])), float(vals[1]))
     parts["sensor"].spec()  # validate the preset now, naming the file
-    return FlightScenario(name=source, legs=legs, **start_values, lift=lift, **parts)
+    return FlightScenario(
+        name=source, legs=legs, **start_values, lift=lift, lift_scatter=scatter, **parts
+    )
 
 
 def is_flight_scenario(name_or_path: str) -> bool:

@@ -2,14 +2,15 @@
 
 Everything random in one run comes from ``numpy.random.default_rng([seed, i])``
 (``i`` the run index), in a fixed order: mounting errors, scale errors, the
-bench calibration, the flight's channel noise and biases, the GPS errors, the
+bench calibration, the aircraft's own lift law (with ``[flight] lift_scatter``),
+the flight's channel noise and biases, the GPS errors, the
 initial heading and attitude the filter is told. The same seed and index give
 the same run, bit for bit.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -107,7 +108,11 @@ def simulate_flight(scn: FlightScenario, run_index: int = 0) -> SimulatedRun:
     cal = bench_calibration(spec, real, nominal, scale_error, m.calibration_samples, rate, rng)
     known = MountingErrors(designed, cal.axis_error_rad)
 
-    truth = fly(scn.plan(), rate)
+    plan = scn.plan()
+    if plan.lift is not None and scn.lift_scatter is not None:
+        # this run's aircraft: the type's lift law with its own rigging and loading
+        plan = replace(plan, lift=plan.lift.drawn(*scn.lift_scatter, rng))
+    truth = fly(plan, rate)
     clean = real.outputs(truth.omega_dot_b_rps2, truth.f_b_mps2, truth.omega_b_rps)
     out, saturated, bias = spec.simulate(clean, rate, scale_error, rng)
     samples = ArraySamples(truth.t_s, out)
