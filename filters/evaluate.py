@@ -85,12 +85,15 @@ def truth_aoa_rad(truth: FlightTruth, idx: np.ndarray) -> np.ndarray:
 
 
 def aoa_nees(est: Estimates, truth: FlightTruth) -> np.ndarray | None:
-    """Angle-of-attack NEES per epoch (E,), 1 dof (NaN where the truth has none),
-    or None when the filter does not carry the state."""
+    """Angle-of-attack NEES per epoch (E,), 1 dof (NaN where the truth has none or
+    the filter's sigma is 0, on the wheels), or None when the filter does not carry
+    the state."""
     if est.aoa_rad is None:
         return None
     e = truth_aoa_rad(truth, truth_indices(truth, est.t_s)) - est.aoa_rad
-    return (e / est.aoa_sigma_rad) ** 2
+    sd = est.aoa_sigma_rad
+    # on the wheels (lift-off blend 0) the angle is known to be 0: no statistic there
+    return np.where(sd > 0, (e / np.where(sd > 0, sd, 1.0)) ** 2, np.nan)
 
 
 def nees(errors: RunErrors, cov_nav: np.ndarray) -> dict[str, np.ndarray]:
