@@ -29,6 +29,7 @@ of the sideslip model's quadratic part (:meth:`NavFilter.sideslip_second_order`)
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from filterpy.kalman import predict as kf_predict
@@ -58,6 +59,16 @@ from ngnav.rotation import (
 #: updates (0.8 s) as new: see README ("the sideslip remainder") for what 1, 4, 10 and
 #: 40 gave.
 SIDESLIP_REMAINDER_UPDATES = 4.0
+#: Times the body-velocity updates count the variance of the remainder's attitude-product
+#: part (the ``dtheta^T A dtheta / 2`` of :meth:`NavFilter.body_velocity_second_order`).
+#: That part multiplies two attitude errors the constraint cannot see (for the sideslip
+#: model: the rotation about the constraint axis, the pitch, times the roll about the
+#: velocity), so no update shrinks it and it lasts as long as the tilt errors do: 40 is
+#: the remainder's integrated autocorrelation measured on ``uav-survey`` (38-41 updates,
+#: README "the sideslip remainder"). Counted like the rest (4) it turned a hand-over's
+#: 1 deg roll and pitch errors into a pitch and angle of attack 2-3 times surer than
+#: their errors (``tactical``, 16 runs, 2-4 s: attitude NEES 7.3, angle of attack 6.1).
+ATTITUDE_REMAINDER_UPDATES = 40.0
 
 #: FRD body axes of the vehicle-model pseudo-measurements: lateral (sideslip) and
 #: vertical (angle of attack).
@@ -78,6 +89,29 @@ def _constraint_axes(axis: int, aoa_rad: float) -> tuple[np.ndarray, np.ndarray]
     if axis == VERTICAL:
         return np.array([-sa, 0.0, ca]), t_b
     raise ValueError(f"axis must be LATERAL (1) or VERTICAL (2), got {axis}")
+
+
+class Remainder(NamedTuple):
+    """A body-velocity model's second-order remainder (m/s; variances m^2/s^2).
+
+    ``var_att`` is the variance of its attitude-product part alone (``dtheta^T A
+    dtheta / 2``), the part no update of the model shrinks.
+    """
+
+    mean: float
+    var: float
+    var_att: float
+
+
+def remainder_variance(rem: Remainder) -> float:
+    """What a body-velocity update adds to R for its remainder, m^2/s^2.
+
+    The variance counted :data:`SIDESLIP_REMAINDER_UPDATES` times and its attitude-product
+    part :data:`ATTITUDE_REMAINDER_UPDATES` times: each count is the number of
+    consecutive updates that share one value of that part.
+    """
+    extra = ATTITUDE_REMAINDER_UPDATES - SIDESLIP_REMAINDER_UPDATES
+    return SIDESLIP_REMAINDER_UPDATES * rem.var + extra * rem.var_att
 
 
 def _quadratic_form(y: np.ndarray, s: np.ndarray) -> float:
@@ -807,9 +841,9 @@ class NavFilter:
         """Zero-sideslip pseudo-measurement (see ``FilterSettings.sideslip_sigma_deg``).
 
         R is the sigma's lateral velocity squared (at the horizontal speed) plus the
-        second-order remainder's variance counted :data:`SIDESLIP_REMAINDER_UPDATES`
-        times (it is correlated from one update to the next); the remainder's mean is
-        added to the prediction.
+        second-order remainder's variance as :func:`remainder_variance` counts it (it
+        is correlated from one update to the next); the remainder's mean is added to
+        the prediction.
 
         Returns the NIS, or None below ``min_speed_mps`` horizontal speed (no update).
         """
@@ -841,15 +875,15 @@ class NavFilter:
 
     def _body_velocity_update(self, axis: int, sigma_v_mps: float) -> tuple[float, bool]:
         v_axis, h = self.body_velocity_model(self.q, self.vel, axis, self.aoa)
-        mean2, var2 = self.body_velocity_second_order(axis)
-        r = np.array([[sigma_v_mps**2 + SIDESLIP_REMAINDER_UPDATES * var2]])
-        return self._gated_update(np.array([-(v_axis + mean2)]), r, h, self.gate1)
+        rem = self.body_velocity_second_order(axis)
+        r = np.array([[sigma_v_mps**2 + remainder_variance(rem)]])
+        return self._gated_update(np.array([-(v_axis + rem.mean)]), r, h, self.gate1)
 
-    def sideslip_second_order(self) -> tuple[float, float]:
+    def sideslip_second_order(self) -> Remainder:
         """:meth:`body_velocity_second_order` of the lateral axis (the sideslip model)."""
         return self.body_velocity_second_order(LATERAL)
 
-    def body_velocity_second_order(self, axis: int = LATERAL) -> tuple[float, float]:
+    def body_velocity_second_order(self, axis: int = LATERAL) -> Remainder:
         """Mean and variance of a body-velocity model's second-order term (m/s, m^2/s^2).
 
         With ``a = C n_b`` (the constraint axis in NED; :meth:`body_velocity_model`),
@@ -866,6 +900,7 @@ class NavFilter:
         of velocity error, tenths of a degree of tilt) they exceed a tight sideslip
         sigma, and without them the filter trusted the linearised constraint too
         far (joint velocity-attitude NEES far above its 6 dof on ``uav-survey``).
+        ``var_att`` is ``Var`` of the ``dtheta^T A dtheta / 2`` part alone.
         """
         c = dcm_from_quat(self.q)
         n_b, t_b = _constraint_axes(axis, self.aoa)
@@ -893,7 +928,12 @@ class NavFilter:
                 [[px, cross[:, None]], [cross[None, :], np.array([[j @ self.P[ia, ia] @ j]])]]
             )
         mp = m @ px
-        return 0.5 * float(np.trace(mp)), 0.5 * float(np.sum(mp * mp.T))
+        mpa = m[0:3, 0:3] @ px[0:3, 0:3]
+        return Remainder(
+            0.5 * float(np.trace(mp)),
+            0.5 * float(np.sum(mp * mp.T)),
+            0.5 * float(np.sum(mpa * mpa.T)),
+        )
 
     def _gated_update(
         self, y: np.ndarray, r: np.ndarray, h: np.ndarray, gate: float | None = None

@@ -6,7 +6,14 @@ from filterpy.kalman import update as kf_update
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from filters.ekf import LATERAL, SIDESLIP_REMAINDER_UPDATES, VERTICAL, FilterNoise, NavFilter
+from filters.ekf import (
+    ATTITUDE_REMAINDER_UPDATES,
+    LATERAL,
+    SIDESLIP_REMAINDER_UPDATES,
+    VERTICAL,
+    FilterNoise,
+    NavFilter,
+)
 from filters.state import ATT, B_F, RATE, VEL
 from ngnav.flight import quat_from_euler
 from ngnav.frontend import ArraySolver
@@ -204,9 +211,9 @@ def test_body_velocity_second_order_terms_match_monte_carlo(axis, aoa_state):
     p[np.ix_(idx, idx)] = px
     nf.P = p
     y0, h = nf.body_velocity_model(nf.q, nf.vel, axis, nf.aoa)
-    mean, var = nf.body_velocity_second_order(axis)
+    mean, var, var_att = nf.body_velocity_second_order(axis)
     if axis == LATERAL:
-        assert (mean, var) == nf.sideslip_second_order()
+        assert (mean, var, var_att) == nf.sideslip_second_order()
     n = 200_000
     x = rng.multivariate_normal(np.zeros(d), px, n)
     dq = np.array([quat_from_rotvec(e) for e in x[:, 0:3]])
@@ -226,6 +233,13 @@ def test_body_velocity_second_order_terms_match_monte_carlo(axis, aoa_state):
     # the sample variance: a 2 % band (sampling about 0.5 %, third-order terms of the
     # exponential below that at these sizes; measured 0.4 %)
     assert resid.var() == pytest.approx(var, rel=0.02)
+    # the attitude-product part alone, dtheta^T A dtheta / 2 with a = C n_b at the estimate
+    c = dcm_from_quat(nf.q)
+    a_n = c @ (n_b[0] if axis == LATERAL else [-np.sin(nf.aoa), 0.0, np.cos(nf.aoa)])
+    a_m = 0.5 * (np.outer(a_n, nf.vel) + np.outer(nf.vel, a_n)) - (a_n @ nf.vel) * np.eye(3)
+    q_att = 0.5 * np.einsum("ki,ij,kj->k", x[:, 0:3], a_m, x[:, 0:3])
+    assert q_att.var() == pytest.approx(var_att, rel=0.02)
+    assert 0.0 < var_att < var
     assert var > 1e-3  # coast-sized errors make the term matter (R is 1.2e-3 at 20 m/s for 0.1 deg)
 
 
@@ -233,7 +247,8 @@ def test_body_velocity_second_order_terms_match_monte_carlo(axis, aoa_state):
 def test_body_velocity_update_counts_the_correlated_remainder(axis):
     """R is the sigma's body velocity squared (horizontal speed for the sideslip, 3-D
     speed for the angle of attack) plus the remainder's variance counted
-    ``SIDESLIP_REMAINDER_UPDATES`` times; the remainder's mean shifts the prediction.
+    ``SIDESLIP_REMAINDER_UPDATES`` times and its attitude-product part
+    ``ATTITUDE_REMAINDER_UPDATES`` times; the remainder's mean shifts the prediction.
 
     The reference is one filterpy update built here from the documented formula, at a
     coast-sized covariance where the remainder dominates R.
@@ -245,17 +260,20 @@ def test_body_velocity_update_counts_the_correlated_remainder(axis):
     v0 = nf.vel.copy()
     idx = np.r_[6:9, 3:6]
     a = rng.normal(size=(6, 6))
-    scale = np.r_[[0.01] * 3, [1.0] * 3]
+    scale = np.r_[[0.05] * 3, [1.0] * 3]  # 3 deg tilts: the attitude products matter too
     p = np.eye(nf.layout.n) * 1e-6
     p[np.ix_(idx, idx)] = (a @ a.T) * np.outer(scale, scale) / 6.0
     nf.P = p
     sigma = np.deg2rad(0.003)
     v_lat, h = nf.body_velocity_model(nf.q, nf.vel, axis)
-    mean2, var2 = nf.body_velocity_second_order(axis)
+    mean2, var2, var_att = nf.body_velocity_second_order(axis)
     speed = np.hypot(v0[0], v0[1]) if axis == LATERAL else np.linalg.norm(v0)
     r0 = (speed * np.tan(sigma)) ** 2
     assert var2 > 10 * r0  # the remainder dominates, so the factor matters
-    r = np.array([[r0 + SIDESLIP_REMAINDER_UPDATES * var2]])
+    extra = ATTITUDE_REMAINDER_UPDATES - SIDESLIP_REMAINDER_UPDATES
+    # the attitude part's own count changes R by more than 10 %
+    assert extra * var_att > 0.1 * SIDESLIP_REMAINDER_UPDATES * var2
+    r = np.array([[r0 + SIDESLIP_REMAINDER_UPDATES * var2 + extra * var_att]])
     x_ref, p_ref = kf_update(np.zeros(nf.layout.n), p.copy(), np.array([-(v_lat + mean2)]), r, h)
     if axis == LATERAL:
         nis = nf.update_sideslip(sigma, 5.0)

@@ -264,18 +264,19 @@ def monte_carlo():
 
 def test_consistency_small_monte_carlo(monte_carlo):
     """After the hand-over, the blocks that meet the 90 % target at 50 runs (velocity,
-    attitude and rate NEES 94.2 / 97.2 / 92.5 %, every NIS >= 94.2 %) are inside the
-    6-run bounds on >= 90 % of epochs. What misses is :func:`test_target_is_met`."""
+    attitude, rate and angle-of-attack NEES 94.5 / 95.6 / 93.3 / 92.3 %, every NIS
+    >= 94.2 %) are inside the 6-run bounds on >= 90 % of epochs. What misses is
+    :func:`test_target_is_met`."""
     out = monte_carlo
     assert out["from_s"] == HAND_OVER_S
     b = out["blocks_from"]
-    for name in ("NEES vel", "NEES att", "NEES rate", "NIS gps pos", "NIS gps vel", "NIS rate"):
+    names = ("NEES vel", "NEES att", "NEES rate", "NEES aoa", "NIS gps pos", "NIS gps vel")
+    for name in (*names, "NIS rate"):
         assert b[name]["share_inside"] >= 0.9, (name, b[name])
     for blocks in (out["blocks"], b):
         for name, v in blocks.items():
             share = v["share_inside"] + v["share_below"] + v["share_above"]
             assert share == pytest.approx(1.0), name
-    assert "NEES aoa" in b  # the angle of attack is judged too
     # the 60 s flight in 2 s windows from its start (the profile covers the whole run)
     assert [round(r["t0_s"]) for r in out["profile"]] == list(range(0, 60, 2))
     assert all(np.isfinite(r[k]) for r in out["profile"] for k in ("pos", "att", "all"))
@@ -285,8 +286,8 @@ def test_consistency_small_monte_carlo(monte_carlo):
 @pytest.mark.xfail(
     strict=True,
     reason="known miss (README): tactical, 50 runs, whole run pos / vel / att / rate / all / "
-    "aoa 91.3 / 88.3 / 89.4 / 92.5 / 82.2 / 75.0 % inside; from 10 s 90.7 / 94.2 / 97.2 / "
-    "92.5 / 88.3 / 81.4 %",
+    "aoa 91.1 / 93.9 / 94.5 / 89.5 / 73.1 / 85.9 % inside; from 10 s 90.5 / 94.5 / 95.6 / "
+    "93.3 / 78.4 / 92.3 % (the joint is pessimistic: 25 % of epochs below)",
 )
 def test_target_is_met(monte_carlo):
     """The issue's target at CI size: every NEES block and NIS inside the bounds on
@@ -297,16 +298,13 @@ def test_target_is_met(monte_carlo):
             assert v["share_inside"] >= 0.9, (name, v)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known miss (README, 'the hand-over'): in the straight flight after hand-over, "
-    "while the angular-acceleration bias is learnt, the rate products' Jacobian reads "
-    "rate errors as information; the attitude and angle of attack turn optimistic "
-    "(2 s windows at 2-6 s: attitude NEES 5-7.5 against a bound of 5.25)",
-)
 def test_hand_over_is_consistent(monte_carlo):
     """Every 2 s window's attitude and angle-of-attack NEES inside the 6-run bounds,
-    the hand-over included. Strict: it fails loudly once the transient is fixed."""
+    the hand-over included. Until the attitude-product part of the vehicle models'
+    remainder was counted as persistent (``ekf.ATTITUDE_REMAINDER_UPDATES``) the
+    hand-over's 1 deg tilt errors made the attitude and angle of attack optimistic
+    at 2-6 s (attitude NEES 5-7.5 against a bound of 5.25); at this size the windows
+    now read attitude 2.2-4.1 and angle of attack 0.6-1.3 in the first 14 s."""
     lo3, hi3 = chi2_bounds(3, 6)
     lo1, hi1 = chi2_bounds(1, 6)
     for row in monte_carlo["profile"]:
