@@ -600,7 +600,7 @@ class Pipeline:
             f_ned - c0 @ cfg.antenna_b_m,
             f_vel,
             q0,
-            np.zeros(3),
+            np.deg2rad(ini.rate_dps) if ini.alignment == "config" else np.zeros(3),
             f_sig,
             f_vacc,
             att_sigma,

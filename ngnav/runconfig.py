@@ -25,7 +25,7 @@ truth to separate files.
     [gps]          antenna_b_m = [x, y, z]            # FRD, m
     [initial]      alignment = "static"|"config", static_s, roll_deg, pitch_deg,
                    yaw_deg, tilt_sigma_deg, heading_source = "config"|"gps",
-                   heading_sigma_deg, rate_sigma_dps
+                   heading_sigma_deg, rate_dps = [x, y, z], rate_sigma_dps
     [filter]       rate_hz, compensation, window, gate_probability, rate_range_dps,
                    sideslip_sigma_deg, aoa_sigma_deg, aoa_prior_deg,
                    aoa_prior_sigma_deg, aoa_rw_deg_rts, aoa_lift_k_m, aoa_lift_k_sigma_m,
@@ -49,7 +49,13 @@ from ngnav.mounting import MountingErrors
 
 @dataclass(frozen=True)
 class InitialSettings:
-    """How the filter starts (see the module docstring)."""
+    """How the filter starts (see the module docstring).
+
+    With ``alignment = "config"`` (a hand-over: the vehicle is already moving) the
+    filter starts at ``roll_deg``/``pitch_deg``/``yaw_deg`` and at the body rate
+    ``rate_dps`` (FRD, deg/s; the launcher's reading), each with its 1-sigma; a
+    static alignment starts at rest (``rate_dps`` unused).
+    """
 
     alignment: str = "static"
     static_s: float = 5.0
@@ -59,7 +65,12 @@ class InitialSettings:
     tilt_sigma_deg: float = 2.0
     heading_source: str = "config"
     heading_sigma_deg: float = 5.0
+    rate_dps: tuple[float, float, float] = (0.0, 0.0, 0.0)
     rate_sigma_dps: float = 1.0
+
+    def __post_init__(self) -> None:
+        if len(self.rate_dps) != 3 or not all(np.isfinite(self.rate_dps)):
+            raise ValueError(f"initial.rate_dps must be 3 finite numbers, got {self.rate_dps}")
 
 
 #: Compensation choices of the filter's front end.

@@ -4,7 +4,8 @@ Everything random in one run comes from ``numpy.random.default_rng([seed, i])``
 (``i`` the run index), in a fixed order: mounting errors, scale errors, the
 bench calibration, the aircraft's own lift law (with ``[flight] lift_scatter``),
 the flight's channel noise and biases, the GPS errors, the
-initial heading and attitude the filter is told. The same seed and index give
+initial heading and attitude the filter is told, and for a hand-over its initial
+rate. The same seed and index give
 the same run, bit for bit.
 """
 
@@ -137,6 +138,10 @@ def simulate_flight(scn: FlightScenario, run_index: int = 0) -> SimulatedRun:
     rpy0 = np.rad2deg(euler_from_quat(truth.q_nb[0]))
     tilt_err = rng.normal(0.0, ini.tilt_sigma_deg, 2)
     yaw_err = rng.normal(0.0, ini.heading_sigma_deg)
+    rate0 = np.zeros(3)
+    if ini.alignment == "config":
+        # a hand-over: the launcher's rate reading, as uncertain as the filter is told
+        rate0 = np.rad2deg(truth.omega_b_rps[0]) + rng.normal(0.0, ini.rate_sigma_dps, 3)
     initial = InitialSettings(
         alignment=ini.alignment,
         static_s=ini.static_s,
@@ -146,6 +151,7 @@ def simulate_flight(scn: FlightScenario, run_index: int = 0) -> SimulatedRun:
         tilt_sigma_deg=ini.tilt_sigma_deg,
         heading_source=ini.heading_source,
         heading_sigma_deg=ini.heading_sigma_deg,
+        rate_dps=(float(rate0[0]), float(rate0[1]), float(rate0[2])),
         rate_sigma_dps=ini.rate_sigma_dps,
     )
     config = RunConfig(
