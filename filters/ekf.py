@@ -36,7 +36,7 @@ from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 from scipy.stats import chi2
 
-from filters.state import ATT, B_F, B_WDOT, POS, RATE, VEL, StateLayout, b_quad
+from filters.state import ATT, B_F, B_WDOT, N_NAV, POS, RATE, VEL, StateLayout, b_quad
 from ngnav.conventions import gravity_n_mps2
 from ngnav.flight import quat_from_euler
 from ngnav.motion import min_jerk_step
@@ -74,6 +74,10 @@ ATTITUDE_REMAINDER_UPDATES = 40.0
 #: vertical (angle of attack).
 LATERAL = 1
 VERTICAL = 2
+
+#: The (attitude, velocity) error rows of the body-velocity models' second-order term.
+_DTHETA_DV = np.r_[ATT, VEL]
+_DTHETA_DV_IX = np.ix_(_DTHETA_DV, _DTHETA_DV)
 
 
 def _constraint_axes(axis: int, aoa_rad: float) -> tuple[np.ndarray, np.ndarray]:
@@ -328,11 +332,18 @@ class NavFilter:
         self.last_rate_innovation = np.zeros(self.layout.nq)
         self._last_wdot = np.zeros(3)
         self._last_f = np.zeros(3)
-        # the constant part of the error dynamics, copied and filled per block
-        fc = np.zeros((n, n))
+        # the constant part of the error dynamics, copied and filled per block: only
+        # the navigation rows (position, velocity, attitude, rate) of F are non-zero
+        # (biases and the angle-of-attack offset walk, DR and K are constants)
+        fc = np.zeros((N_NAV, n))
         fc[POS, VEL] = np.eye(3)
         fc[RATE, B_WDOT] = -np.eye(3)
         self._fc_base = fc
+        # the rate measurement's Jacobian without its rate columns (filled per block)
+        h_rate = np.zeros((self.layout.nq, n))
+        h_rate[:, b_quad(self.layout.nq)] = np.eye(self.layout.nq)
+        self._h_rate_base = h_rate
+        self._quad_rows = np.arange(self.layout.nq)
         self._t12 = np.eye(12)
         self._q12_cache: dict[tuple[int, float], np.ndarray] = {}
 
@@ -546,9 +557,13 @@ class NavFilter:
             dr = self.layout.dr
             fc[RATE, dr] = -sg[0:3]
             fc[VEL, dr] = -c @ sg[3:6]
+        # F t = [[A, B], [0, 0]] (navigation rows first), so (F t)^m = A^(m-1) [A, B]:
+        # the series I + F t + (F t)^2 / 2 + (F t)^3 / 6 needs only the 12 rows
         ft = fc * t
-        ft2 = ft @ ft
-        phi = self._eye + ft + ft2 @ (0.5 * self._eye + ft / 6.0)
+        a = ft[:, :N_NAV]
+        ft2 = a @ ft
+        phi = self._eye.copy()
+        phi[:N_NAV] += ft + 0.5 * ft2 + (a @ ft2) * (1.0 / 6.0)
         # noise of the k samples, summed exactly for constant C: body-frame blocks rotated
         t12 = self._t12
         t12[0:3, 0:3] = c
@@ -663,18 +678,16 @@ class NavFilter:
         the measurement does not hold (a straight flight's yaw rate would
         look measured and the heading would turn overconfident).
         """
-        nq = self.layout.nq
         i, j = self.quad_pairs[:, 0], self.quad_pairs[:, 1]
         inv_k = 1.0 / w_block.shape[0]
         pred = (w_block[:, i] * w_block[:, j]).sum(axis=0) * inv_k
         w_mean = w_block.sum(axis=0) * inv_k
         if rate_var is not None:
             w_mean = np.sign(w_mean) * np.sqrt(np.maximum(w_mean**2 - rate_var, 0.0))
-        h = np.zeros((nq, self.layout.n))
-        rows = np.arange(nq)
+        h = self._h_rate_base.copy()
+        rows = self._quad_rows
         h[rows, 9 + i] += w_mean[j]
         h[rows, 9 + j] += w_mean[i]
-        h[:, b_quad(nq)] = np.eye(nq)
         if self.layout.n_dr:
             h[:, self.layout.dr] = sg[6:]
         return pred, h
@@ -773,7 +786,10 @@ class NavFilter:
         j = np.zeros(self.layout.n)
         if not self.layout.n_aoa:
             return j
-        j[self.layout.aoa] = self._aoa_gradient()
+        ia = self.layout.aoa.start
+        j[ia] = self._lift_w
+        if self.layout.n_aoa == 2:
+            j[ia + 1] = self._lift_w * self._lift_u
         speed2 = float(vel_ned_mps @ vel_ned_mps)
         if speed2 <= 1.0:
             return j
@@ -913,13 +929,13 @@ class NavFilter:
         sa = skew(a)
         m[0:3, 3:6] = sa
         m[3:6, 0:3] = sa.T
-        idx = np.r_[6:9, 3:6]  # (dtheta, dv)
+        idx = _DTHETA_DV
         if with_aoa:
             b = c @ t_b
             m[6, 0:3] = m[0:3, 6] = -(b @ skew(v))
             m[6, 3:6] = m[3:6, 6] = -b
             m[6, 6] = -float(a @ v)
-        px = self.P[np.ix_(idx, idx)]
+        px = self.P[_DTHETA_DV_IX]
         if with_aoa:  # the angle of attack's error: w (d alpha_b + u dK)
             ia = self.layout.aoa
             j = self._aoa_gradient()
@@ -1077,13 +1093,15 @@ class NavFilter:
             self.aoa_b += float(da[0])
             if self.layout.n_aoa == 2:
                 self.aoa_k += float(da[1])
-        # reset Jacobian of the attitude error (first order): G = I except G[ATT, ATT]
-        ga = np.eye(3) - 0.5 * skew(dth)
+        # reset Jacobian of the attitude error (first order): G = I except
+        # G[ATT, ATT] = I - [dtheta]x / 2
+        hx, hy, hz = (0.5 * dth).tolist()
+        ga = np.array([[1.0, hz, -hy], [-hz, 1.0, hx], [hy, -hx, 1.0]])
         p = self.P
         p[ATT, :] = ga @ p[ATT, :]
         p[:, ATT] = p[:, ATT] @ ga.T
         self.P = 0.5 * (p + p.T)
-        self.x = np.zeros_like(self.x)
+        self.x = np.zeros(self.x.shape[0])
 
     def _symmetrise(self) -> None:
         self.P = 0.5 * (self.P + self.P.T)

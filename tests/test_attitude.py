@@ -1,7 +1,7 @@
 import numpy as np
 
 from ngnav.conventions import G0_MPS2
-from ngnav.motion import fixed_axis_turn
+from ngnav.motion import fixed_axis_turn, min_jerk_step
 from ngnav.rotation import (
     quat_from_rotvec,
     quat_multiply,
@@ -48,3 +48,16 @@ def test_turn_truth_is_self_consistent():
     ang = rotation_angle_about(q, np.array([1.0, 1.0, 0.0]))
     assert np.rad2deg(ang[-1]) == np.float64(np.rad2deg(ang[-1]))
     assert abs(np.rad2deg(ang[-1]) - 95.0) < 1e-6
+
+
+def test_min_jerk_step_float_path_matches_arrays():
+    """The filter's float path gives the array path's values, inside and outside [0, 1]."""
+    taus = [-0.5, 0.0, 0.1, 0.37, 0.5, 0.93, 1.0, 1.7]
+    arrays = min_jerk_step(np.array(taus))
+    for k, tau in enumerate(taus):
+        floats = min_jerk_step(tau)
+        assert all(type(v) is float for v in floats)
+        np.testing.assert_allclose(floats, [a[k] for a in arrays], rtol=1e-15, atol=1e-15)
+    # the exact step: s(1/2) = 1/2, ds(1/2) = 30/16, constant outside
+    assert min_jerk_step(0.5)[:2] == (0.5, 1.875)
+    assert min_jerk_step(2.0) == (1.0, 0.0, 0.0)

@@ -361,3 +361,42 @@ def test_reopen_attitude_adds_tilt_and_rate_variance_only():
     assert np.allclose(added, expect, rtol=0, atol=1e-15)
     assert nf.counters.attitude_reopens == 1
     assert nf.consecutive_velocity_rejects == 0
+
+
+def test_transition_is_the_exponential_of_the_error_dynamics():
+    """Phi over a block is exp(F t) to third order, F the documented error dynamics.
+
+    F (filters/state.py): d pos = d vel; d vel = -[f_n]x d theta - C d b_f - C S_f G d r;
+    d theta = C d w; d w = -d b_w - S_w G d r; the biases, DR and AOA states have none.
+    Phi must be the third-order series of that F (dense powers here) and differ from
+    scipy's matrix exponential by its fourth-order term (F t)^4 / 24 alone (the fifth
+    power vanishes for this F).
+    """
+    from scipy.linalg import expm
+
+    from filters.state import B_WDOT, POS
+
+    nf, _, _ = _filter(0.0005, aoa_sigma_rad=0.01)
+    rng = np.random.default_rng(3)
+    c = dcm_from_quat(quat_normalize(rng.normal(size=4)))
+    f_n = np.array([1.5, -2.0, -9.0])
+    sg = nf.geometry_jacobian(rng.normal(size=3), rng.normal(size=3))
+    k, dt = 20, 0.001
+    phi, q = nf.propagation_matrices(k, dt, c, f_n, sg)
+    n = nf.layout.n
+    f = np.zeros((n, n))
+    f[POS, VEL] = np.eye(3)
+    f[VEL, ATT] = -skew(f_n)
+    f[VEL, B_F] = -c
+    f[VEL, nf.layout.dr] = -c @ sg[3:6]
+    f[ATT, RATE] = c
+    f[RATE, B_WDOT] = -np.eye(3)
+    f[RATE, nf.layout.dr] = -sg[0:3]
+    ft = f * (k * dt)
+    ft2 = ft @ ft
+    series = np.eye(n) + ft + ft2 / 2 + ft2 @ ft / 6
+    np.testing.assert_allclose(phi, series, rtol=0, atol=1e-14)
+    fourth = ft2 @ ft2 / 24
+    assert np.abs(fourth).max() > 1e-6  # the check below can see a missing term
+    np.testing.assert_allclose(expm(ft) - phi, fourth, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(q, q.T, rtol=0, atol=1e-12 * np.abs(q).max())
