@@ -28,6 +28,7 @@ of the sideslip model's quadratic part (:meth:`NavFilter.sideslip_second_order`)
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -74,6 +75,14 @@ ATTITUDE_REMAINDER_UPDATES = 40.0
 #: vertical (angle of attack).
 LATERAL = 1
 VERTICAL = 2
+
+#: Standard-normal grid (41 points over +-6 sigma) and its normalised Gaussian weights:
+#: the lift-off blend's spread over a speed error (:meth:`NavFilter.blend_remainder_var`).
+#: The blend is piecewise polynomial, which Gauss-Hermite rules integrate badly near its
+#: ends (7 points: off by up to 100 %); this grid agrees with 4e6 sampled errors within
+#: their standard error (scratch check, the blend's start, middle and end).
+_BLEND_Z = np.linspace(-6.0, 6.0, 41)
+_BLEND_W = np.exp(-0.5 * _BLEND_Z**2) / np.exp(-0.5 * _BLEND_Z**2).sum()
 
 #: The (attitude, velocity) error rows of the body-velocity models' second-order term.
 _DTHETA_DV = np.r_[ATT, VEL]
@@ -804,9 +813,46 @@ class NavFilter:
 
     @property
     def aoa_sigma(self) -> float:
-        """1-sigma of :attr:`aoa`, rad, through :meth:`aoa_jacobian` (0 without the state)."""
+        """1-sigma of :attr:`aoa`, rad: :meth:`aoa_jacobian`'s linear part plus the
+        lift-off blend's beyond it (:meth:`blend_remainder_var`); 0 without the state."""
         j = self.aoa_jacobian(self.vel)
-        return float(np.sqrt(j @ self.P @ j))
+        lift = self.aoa_b + self.aoa_k * self._lift_u
+        return float(np.sqrt(j @ self.P @ j + lift * lift * self.blend_remainder_var()))
+
+    def blend_remainder_var(self) -> float:
+        """Variance of the lift-off blend ``w(V)`` beyond its linear term (dimensionless).
+
+        The blend is the minimum-jerk step over ``[0.8, 1] liftoff_speed_mps``, whose
+        first and second derivatives vanish where it starts and ends: there a speed
+        error ``dV`` moves ``w`` by ``10 (dV / width)^3`` and more, which the
+        Jacobian's ``w'(V) dV`` cannot carry (the filter's angle-of-attack sigma
+        went to 1e-8 deg at the blend's start while the truth, blended on its own
+        speed, was 1e-4 deg off). This is ``Var[w(V + dV) - w(V) - w'(V) dV]`` for
+        ``dV ~ N(0, u^T P_vel u)`` (``u`` the velocity's direction), on a 41-point
+        grid over +-6 sigma; 0 where the blend is flat over +-6 sigma of speed,
+        without the ``AOA`` state, or without a blend.
+        """
+        v_lof = self.liftoff_speed_mps
+        if not self.layout.n_aoa or v_lof <= 0.0:
+            return 0.0
+        speed = float(np.linalg.norm(self.vel))
+        if speed <= 1.0:
+            return 0.0
+        width = 0.2 * v_lof
+        x0 = (speed - 0.8 * v_lof) / width
+        # the per-block path: the trace bounds the speed's variance from above
+        s_max = 6.0 * math.sqrt(max(float(np.trace(self.P[VEL, VEL])), 0.0)) / width
+        if x0 + s_max <= 0.0 or x0 - s_max >= 1.0:
+            return 0.0
+        u = self.vel / speed
+        sx = float(np.sqrt(max(u @ self.P[VEL, VEL] @ u, 0.0))) / width
+        if x0 + 6.0 * sx <= 0.0 or x0 - 6.0 * sx >= 1.0:
+            return 0.0
+        s0, ds0, _ = min_jerk_step(x0)
+        s, _, _ = min_jerk_step(x0 + sx * _BLEND_Z)
+        r = s - s0 - ds0 * sx * _BLEND_Z
+        mean = float(_BLEND_W @ r)
+        return max(float(_BLEND_W @ (r * r)) - mean * mean, 0.0)
 
     def set_load(self, f_b_mps2: np.ndarray) -> None:
         """Feed the lift law the block's specific force (FRD, m/s^2, biases removed).
@@ -892,7 +938,15 @@ class NavFilter:
     def _body_velocity_update(self, axis: int, sigma_v_mps: float) -> tuple[float, bool]:
         v_axis, h = self.body_velocity_model(self.q, self.vel, axis, self.aoa)
         rem = self.body_velocity_second_order(axis)
-        r = np.array([[sigma_v_mps**2 + remainder_variance(rem)]])
+        var = sigma_v_mps**2 + remainder_variance(rem)
+        if axis == VERTICAL and self.layout.n_aoa:
+            # the blend beyond its linear term moves the angle, and the wind-normal
+            # velocity by -(C t_b . v) per radian (body_velocity_model)
+            _, t_b = _constraint_axes(VERTICAL, self.aoa)
+            dv_da = float((dcm_from_quat(self.q) @ t_b) @ self.vel)
+            lift = self.aoa_b + self.aoa_k * self._lift_u
+            var += dv_da * dv_da * lift * lift * self.blend_remainder_var()
+        r = np.array([[var]])
         return self._gated_update(np.array([-(v_axis + rem.mean)]), r, h, self.gate1)
 
     def sideslip_second_order(self) -> Remainder:

@@ -18,6 +18,7 @@ from filters.state import ATT, B_F, RATE, VEL
 from ngnav.flight import quat_from_euler
 from ngnav.frontend import ArraySolver
 from ngnav.layout import ArrayLayout, nine_accelerometer_cube
+from ngnav.motion import min_jerk_step
 from ngnav.rotation import (
     dcm_from_quat,
     euler_from_quat,
@@ -400,3 +401,49 @@ def test_transition_is_the_exponential_of_the_error_dynamics():
     assert np.abs(fourth).max() > 1e-6  # the check below can see a missing term
     np.testing.assert_allclose(expm(ft) - phi, fourth, rtol=0, atol=1e-13)
     np.testing.assert_allclose(q, q.T, rtol=0, atol=1e-12 * np.abs(q).max())
+
+
+@pytest.mark.parametrize(
+    ("speed_mps", "speed_sigma_mps"),
+    [(32.0, 0.4), (32.4, 0.2), (36.0, 0.5), (40.0, 0.3), (50.0, 0.3)],
+)
+def test_blend_remainder_matches_sampled_speed_errors(speed_mps, speed_sigma_mps):
+    """What the lift-off blend does beyond its linear term, against sampling.
+
+    The blend is the minimum-jerk step over 32-40 m/s (lift-off speed 40 m/s). For a
+    speed error drawn from the filter's velocity covariance (along the velocity), the
+    variance of ``w(V + dV) - w(V) - w'(V) dV`` from 400 000 draws must match
+    ``blend_remainder_var`` within 4 of its standard errors: at the blend's start
+    (where ``w'`` is 0 and the linear sigma is nothing), inside it, at its end, and 0
+    in flight (50 m/s, flat over +-6 sigma).
+    """
+    layout = nine_accelerometer_cube(0.1)
+    solver = ArraySolver(layout, np.full(9, 1e-3))
+    cov = solver.covariance()
+    nf = NavFilter(
+        FilterNoise(cov, cov, cov * 1e-6),
+        PAIRS,
+        np.zeros(3),
+        aoa_prior_sigma_rad=0.02,
+        aoa_lift_k_m=18.0,
+        liftoff_speed_mps=40.0,
+        aoa_lift_k_sigma_m=0.9,
+    )
+    initialise_level(nf)
+    u = np.array([0.6, -0.8, 0.0])
+    nf.vel = speed_mps * u
+    p = nf.P.copy()
+    p[VEL, VEL] = np.diag([speed_sigma_mps**2, speed_sigma_mps**2, 0.01])
+    nf.P = p
+    got = nf.blend_remainder_var()
+    if speed_mps >= 40.0 + 6 * speed_sigma_mps:
+        assert got == 0.0
+        return
+    d_v = np.random.default_rng(11).normal(0.0, speed_sigma_mps, 400_000)
+    x0 = (speed_mps - 32.0) / 8.0
+    s0, ds0, _ = min_jerk_step(x0)
+    r = min_jerk_step(x0 + d_v / 8.0)[0] - s0 - ds0 * d_v / 8.0
+    want = r.var()
+    se = np.sqrt(((r - r.mean()) ** 2).var() / r.size)
+    assert want > 0 and got > 0
+    assert abs(got - want) < 4 * se + 1e-3 * want
