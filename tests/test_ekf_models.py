@@ -51,6 +51,25 @@ def _filter(
     return nf, layout, solver
 
 
+def _lift_law_filter() -> NavFilter:
+    """A level filter with the airframe's lift law: K = 18 m (known to 0.9 m), an
+    offset known to 0.02 rad, the lift-off blend over 32-40 m/s."""
+    layout = nine_accelerometer_cube(0.1)
+    solver = ArraySolver(layout, np.full(9, 1e-3))
+    cov = solver.covariance()
+    nf = NavFilter(
+        FilterNoise(cov, cov, cov * 1e-6),
+        PAIRS,
+        np.zeros(3),
+        aoa_prior_sigma_rad=0.02,
+        aoa_lift_k_m=18.0,
+        liftoff_speed_mps=40.0,
+        aoa_lift_k_sigma_m=0.9,
+    )
+    initialise_level(nf)
+    return nf
+
+
 vec3 = st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3).map(np.array)
 
 
@@ -135,19 +154,7 @@ def test_lift_law_jacobian_matches_finite_differences(speed_scale):
     so the vertical model also depends on the velocity (through V), the force bias
     (through n_w), the offset and K: each Jacobian column against central differences
     of the whole chain (``set_load`` then the model; the angle inside ``n_w`` held)."""
-    layout = nine_accelerometer_cube(0.1)
-    solver = ArraySolver(layout, np.full(9, 1e-3))
-    cov = solver.covariance()
-    nf = NavFilter(
-        FilterNoise(cov, cov, cov * 1e-6),
-        PAIRS,
-        np.zeros(3),
-        aoa_prior_sigma_rad=0.02,
-        aoa_lift_k_m=18.0,
-        liftoff_speed_mps=40.0,
-        aoa_lift_k_sigma_m=0.9,
-    )
-    initialise_level(nf)
+    nf = _lift_law_filter()
     assert nf.layout.n_aoa == 2
     q = quat_from_rotvec(np.array([0.4, -0.1, 1.2]))
     vel = np.array([30.0, -40.0, 3.0]) * speed_scale  # 50.1 m/s, or 36 m/s (w = 0.79)
@@ -417,19 +424,7 @@ def test_blend_remainder_matches_sampled_speed_errors(speed_mps, speed_sigma_mps
     (where ``w'`` is 0 and the linear sigma is nothing), inside it, at its end, and 0
     in flight (50 m/s, flat over +-6 sigma).
     """
-    layout = nine_accelerometer_cube(0.1)
-    solver = ArraySolver(layout, np.full(9, 1e-3))
-    cov = solver.covariance()
-    nf = NavFilter(
-        FilterNoise(cov, cov, cov * 1e-6),
-        PAIRS,
-        np.zeros(3),
-        aoa_prior_sigma_rad=0.02,
-        aoa_lift_k_m=18.0,
-        liftoff_speed_mps=40.0,
-        aoa_lift_k_sigma_m=0.9,
-    )
-    initialise_level(nf)
+    nf = _lift_law_filter()
     u = np.array([0.6, -0.8, 0.0])
     nf.vel = speed_mps * u
     p = nf.P.copy()
