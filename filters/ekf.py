@@ -777,7 +777,11 @@ class NavFilter:
     @property
     def aoa(self) -> float:
         """The nominal angle of attack, rad: ``w (alpha_b + K u)`` (``alpha_b`` without a law)."""
-        return self._lift_w * (self.aoa_b + self.aoa_k * self._lift_u)
+        return self._lift_w * self._unblended_aoa()
+
+    def _unblended_aoa(self) -> float:
+        """The lift law before the lift-off blend, ``alpha_b + K u``, rad."""
+        return self.aoa_b + self.aoa_k * self._lift_u
 
     def _aoa_gradient(self) -> np.ndarray:
         """d alpha / d(AOA states): ``w [1, u]`` (or ``[w]`` with the offset alone)."""
@@ -803,7 +807,7 @@ class NavFilter:
         if speed2 <= 1.0:
             return j
         if self._lift_dw:
-            lift = self.aoa_b + self.aoa_k * self._lift_u
+            lift = self._unblended_aoa()
             j[VEL] += self._lift_dw * lift * vel_ned_mps / np.sqrt(speed2)
         if self.aoa_k > 0.0:
             wk = self._lift_w * self.aoa_k / speed2
@@ -816,7 +820,7 @@ class NavFilter:
         """1-sigma of :attr:`aoa`, rad: :meth:`aoa_jacobian`'s linear part plus the
         lift-off blend's beyond it (:meth:`blend_remainder_var`); 0 without the state."""
         j = self.aoa_jacobian(self.vel)
-        lift = self.aoa_b + self.aoa_k * self._lift_u
+        lift = self._unblended_aoa()
         return float(np.sqrt(j @ self.P @ j + lift * lift * self.blend_remainder_var()))
 
     def blend_remainder_var(self) -> float:
@@ -939,13 +943,14 @@ class NavFilter:
         v_axis, h = self.body_velocity_model(self.q, self.vel, axis, self.aoa)
         rem = self.body_velocity_second_order(axis)
         var = sigma_v_mps**2 + remainder_variance(rem)
-        if axis == VERTICAL and self.layout.n_aoa:
+        blend_var = self.blend_remainder_var() if axis == VERTICAL else 0.0
+        if blend_var > 0.0:
             # the blend beyond its linear term moves the angle, and the wind-normal
             # velocity by -(C t_b . v) per radian (body_velocity_model)
             _, t_b = _constraint_axes(VERTICAL, self.aoa)
             dv_da = float((dcm_from_quat(self.q) @ t_b) @ self.vel)
-            lift = self.aoa_b + self.aoa_k * self._lift_u
-            var += dv_da * dv_da * lift * lift * self.blend_remainder_var()
+            lift = self._unblended_aoa()
+            var += dv_da * dv_da * lift * lift * blend_var
         r = np.array([[var]])
         return self._gated_update(np.array([-(v_axis + rem.mean)]), r, h, self.gate1)
 
