@@ -45,9 +45,8 @@ from ngnav.rotation import (
     cross_rows,
     dcm_from_quat,
     euler_from_quat,
-    quat_from_rotvec,
-    quat_multiply,
     quat_normalize,
+    quat_rotate_by_rotvec,
     skew,
 )
 
@@ -352,9 +351,18 @@ class NavFilter:
         h_rate = np.zeros((self.layout.nq, n))
         h_rate[:, b_quad(self.layout.nq)] = np.eye(self.layout.nq)
         self._h_rate_base = h_rate
-        self._quad_rows = np.arange(self.layout.nq)
         self._t12 = np.eye(12)
+        self._eye12 = np.eye(N_NAV)
         self._q12_cache: dict[tuple[int, float], np.ndarray] = {}
+        self._weights_cache: dict[tuple[int, float], tuple[np.ndarray, ...]] = {}
+        if self.solve_matrix is not None:
+            self._solve_rep = np.repeat(np.asarray(self.solve_matrix, dtype=float), 3, axis=1)
+        # d(w_i w_j)/dw = D @ w per rate product: D[r, c, m] = [c = i][m = j] + [c = j][m = i]
+        d = np.zeros((self.layout.nq, 3, 3))
+        for r, (i, j) in enumerate(self.quad_pairs.tolist()):
+            d[r, i, j] += 1.0
+            d[r, j, i] += 1.0
+        self._quad_d = d
 
     # ------------------------------------------------------------------ set-up
     def initialise(
@@ -432,47 +440,84 @@ class NavFilter:
         """
         k = wdot.shape[0]
         bw, bf = self._feature_offset(sg)
-        h = 0.5 * dt
-        # rate at the K + 1 sample times of the block (trapezoid of wdot)
-        wd = np.concatenate([self._last_wdot[None], wdot]) - bw
-        w_all = np.empty((k + 1, 3))
-        w_all[0] = self.w
-        np.cumsum((wd[:-1] + wd[1:]) * h, axis=0, out=w_all[1:])
-        w_all[1:] += self.w
-        alpha = (w_all[:-1] + w_all[1:]) * h  # rotation vector of each sample interval
-        # attitude at each sample time relative to the block start (second order)
-        cum = np.empty((k + 1, 3))
-        cum[0] = 0.0
-        np.cumsum(alpha, axis=0, out=cum[1:])
-        f_c = np.concatenate([self._last_f[None], f]) - bf
+        mw, mw0, wts, wts1 = self._block_weights(k, dt)
+        # rate, sample rotation vectors and their running sum (attitude relative to
+        # the block start, second order) at once: all linear in the K + 1 samples
+        wd = np.concatenate([self._last_wdot[None], wdot])
+        wd -= bw
+        lin = mw @ wd
+        lin += mw0 * self.w
+        w = lin[:k]
+        alpha = lin[k : 2 * k]
+        cum = lin[2 * k :]
+        f_c = np.concatenate([self._last_f[None], f])
+        f_c -= bf
         # rotate f_k by exp(cum_k) to the block-start body frame, to second order
         cf = cross_rows(cum, f_c)
         f_b0 = f_c + cf + 0.5 * cross_rows(cum, cf)
         c0 = dcm_from_quat(self.q)
         pa = self.P[ATT, ATT]
         # E[C f] = (I + (P_att - tr(P_att) I) / 2) C f  (second order in the attitude error)
-        m = c0 + 0.5 * (pa - np.trace(pa) * self._eye3) @ c0
-        a_n = f_b0 @ m.T
-        a_n += self._g
-        v_all = np.empty((k + 1, 3))
-        v_all[0] = self.vel
-        np.cumsum((a_n[:-1] + a_n[1:]) * h, axis=0, out=v_all[1:])
-        v_all[1:] += self.vel
-        self.pos = self.pos + (v_all.sum(axis=0) - 0.5 * (v_all[0] + v_all[-1])) * dt
+        m = pa @ c0
+        m *= 0.5
+        m += (1.0 - 0.5 * (pa[0, 0] + pa[1, 1] + pa[2, 2])) * c0
+        # the trapezoid's velocity increment, position increment and mean force
+        # are weighted sums of a_n = m f_b0 + g over the samples
+        y = (wts @ f_b0) @ m.T
+        y += wts1 * self._g
+        self.pos = self.pos + (k * dt) * self.vel + y[1]
+        self.vel = self.vel + y[0]
         # attitude: exact product of the sample rotations, with the coning term
         rot = cum[-1] + 0.5 * cross_rows(cum[:-1], alpha).sum(axis=0)
-        self.q = quat_normalize(quat_multiply(self.q, quat_from_rotvec(rot)))
-        self.vel = v_all[-1]
-        w = w_all[1:]
+        self.q = quat_rotate_by_rotvec(self.q, rot, left=False)
         self.w = w[-1].copy()
         self._last_wdot = wdot[-1].copy()
         self._last_f = f[-1].copy()
         self.t_s += k * dt
-        f_n = a_n[1:].sum(axis=0) * (1.0 / k) - self._g
+        f_n = y[2] - self._g
         self._predict_covariance(k, dt, c0, f_n, sg)
         self.counters.blocks += 1
         self.counters.samples += k
         return w
+
+    def _block_weights(
+        self, k: int, dt: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The block integration as matrices over its K + 1 samples (cached per K, dt).
+
+        With ``d`` (K + 1, 3) the angular accelerations at the block's sample
+        times (the previous block's last one first) and ``w0`` the rate at the
+        block start, the trapezoid rule gives the rates at the K sample times
+        ``W d + w0``, the sample rotation vectors ``alpha_s = dt (w_s + w_s+1) / 2``
+        and their running sums ``cum_s`` (s = 0..K) as rows of ``mw @ d + mw0 w0``
+        (3K + 1 rows: rates, rotation vectors, running sums). ``wts`` (3, K + 1)
+        turns accelerations ``a`` at the sample times into the block's velocity
+        increment (trapezoid), its position increment beyond ``K dt v0``
+        (trapezoid of the trapezoid) and its mean over the K new samples;
+        ``wts1`` (3, 1) are their row sums (the weights of a constant).
+        """
+        key = (k, dt)
+        got = self._weights_cache.get(key)
+        if got is not None:
+            return got
+        h = 0.5 * dt
+        tw = np.zeros((k + 1, k + 1))  # running trapezoid: value at s minus value at 0
+        for s in range(1, k + 1):
+            tw[s] = tw[s - 1]
+            tw[s, s - 1] += h
+            tw[s, s] += h
+        avg = h * (np.eye(k, k + 1) + np.eye(k, k + 1, 1))  # interval mean times dt
+        run = np.tril(np.ones((k + 1, k)), -1)  # running sum from 0
+        mw = np.vstack([tw[1:], avg @ tw, run @ avg @ tw])
+        ones = np.ones(k + 1)
+        mw0 = np.concatenate([ones[1:], avg @ ones, run @ avg @ ones])[:, None]
+        trap = np.full(k + 1, dt)
+        trap[[0, -1]] = h
+        mean = np.r_[0.0, np.full(k, 1.0 / k)]
+        wts = np.vstack([tw[k], trap @ tw, mean])
+        got = (mw, mw0, wts, wts.sum(axis=1)[:, None])
+        self._weights_cache[key] = got
+        return got
 
     def add_hold_noise(
         self, t_before_s: float, t_after_s: float, wdot_sigma_rps2: float, f_sigma_mps2: float
@@ -517,11 +562,20 @@ class NavFilter:
         wdot_b_rps2, omega_b_rps : arrays (3,)
             The block's angular acceleration and rate, FRD.
         """
-        sw = skew(omega_b_rps)
-        m = skew(wdot_b_rps2) + sw @ sw
+        ax, ay, az = np.asarray(wdot_b_rps2, dtype=float).tolist()
+        x, y, z = np.asarray(omega_b_rps, dtype=float).tolist()
+        n2 = x * x + y * y + z * z
+        # [wdot]x + [w]x^2 = [wdot]x + w w^T - |w|^2 I
+        m = np.array(
+            [
+                [x * x - n2, x * y - az, x * z + ay],
+                [y * x + az, y * y - n2, y * z - ax],
+                [z * x - ay, z * y + ax, z * z - n2],
+            ]
+        )
         tm = self.sensor_axes_b @ m  # (N, 3)
-        s = self.solve_matrix
-        return (s[:, :, None] * tm[None, :, :]).reshape(s.shape[0], -1)
+        # entry (r, 3 i + c) is S[r, i] tm[i, c]: S with each column repeated 3 times
+        return self._solve_rep * tm.ravel()
 
     def set_last_sample(self, wdot: np.ndarray, f: np.ndarray) -> None:
         """The compensated sample at the filter's current time (FRD; rad/s^2, m/s^2)."""
@@ -568,11 +622,16 @@ class NavFilter:
             fc[VEL, dr] = -c @ sg[3:6]
         # F t = [[A, B], [0, 0]] (navigation rows first), so (F t)^m = A^(m-1) [A, B]:
         # the series I + F t + (F t)^2 / 2 + (F t)^3 / 6 needs only the 12 rows
+        # in Horner form, (I + A (I + A / 3) / 2) [A, B]
         ft = fc * t
         a = ft[:, :N_NAV]
-        ft2 = a @ ft
+        b = a * (1.0 / 3.0)
+        b += self._eye12
+        b = a @ b
+        b *= 0.5
+        b += self._eye12
         phi = self._eye.copy()
-        phi[:N_NAV] += ft + 0.5 * ft2 + (a @ ft2) * (1.0 / 6.0)
+        phi[:N_NAV] += b @ ft
         # noise of the k samples, summed exactly for constant C: body-frame blocks rotated
         t12 = self._t12
         t12[0:3, 0:3] = c
@@ -630,11 +689,13 @@ class NavFilter:
         if nq == 0 or not self.rate_measurement:
             return None
         prr = self.P[RATE, RATE]
-        pred, h = self.rate_model(w_block, sg, np.diag(prr))
+        pred, h = self.rate_model(w_block, sg, np.diagonal(prr))
         i, j = self.quad_pairs[:, 0], self.quad_pairs[:, 1]
-        pred = pred + prr[i, j] + self.bias[6:]
+        pij = prr[i, j]
+        pred = pred + pij + self.bias[6:]
         # second order: the spread of d_i d_j about its mean P_ij
-        r = self._sqq / k + np.diag(prr[i, i] * prr[j, j] + prr[i, j] ** 2)
+        r = self._sqq * (1.0 / k)
+        r.flat[:: nq + 1] += prr[i, i] * prr[j, j] + pij * pij
         if self.layout.n_dr:
             pred = pred + sg[6:] @ self.dr
         y = quad_mean - pred
@@ -689,14 +750,17 @@ class NavFilter:
         """
         i, j = self.quad_pairs[:, 0], self.quad_pairs[:, 1]
         inv_k = 1.0 / w_block.shape[0]
-        pred = (w_block[:, i] * w_block[:, j]).sum(axis=0) * inv_k
+        pred = (w_block.T @ w_block)[i, j] * inv_k
         w_mean = w_block.sum(axis=0) * inv_k
         if rate_var is not None:
-            w_mean = np.sign(w_mean) * np.sqrt(np.maximum(w_mean**2 - rate_var, 0.0))
+            w_mean = np.array(
+                [
+                    math.copysign(math.sqrt(max(wm * wm - v, 0.0)), wm) if wm else 0.0
+                    for wm, v in zip(w_mean.tolist(), np.asarray(rate_var).tolist(), strict=True)
+                ]
+            )
         h = self._h_rate_base.copy()
-        rows = self._quad_rows
-        h[rows, 9 + i] += w_mean[j]
-        h[rows, 9 + j] += w_mean[i]
+        h[:, RATE] = self._quad_d @ w_mean
         if self.layout.n_dr:
             h[:, self.layout.dr] = sg[6:]
         return pred, h
@@ -839,13 +903,16 @@ class NavFilter:
         v_lof = self.liftoff_speed_mps
         if not self.layout.n_aoa or v_lof <= 0.0:
             return 0.0
-        speed = float(np.linalg.norm(self.vel))
+        vx, vy, vz = self.vel.tolist()
+        speed = math.sqrt(vx * vx + vy * vy + vz * vz)
         if speed <= 1.0:
             return 0.0
         width = 0.2 * v_lof
         x0 = (speed - 0.8 * v_lof) / width
         # the per-block path: the trace bounds the speed's variance from above
-        s_max = 6.0 * math.sqrt(max(float(np.trace(self.P[VEL, VEL])), 0.0)) / width
+        p, iv = self.P, VEL.start
+        s_max = 6.0 * math.sqrt(max(float(p[iv, iv] + p[iv + 1, iv + 1] + p[iv + 2, iv + 2]), 0.0))
+        s_max /= width
         if x0 + s_max <= 0.0 or x0 - s_max >= 1.0:
             return 0.0
         u = self.vel / speed
@@ -866,14 +933,15 @@ class NavFilter:
         ``w(V)``. The angle of attack so depends on the velocity and force-bias states
         too; :meth:`body_velocity_model` carries both in its Jacobian.
         """
-        speed = float(np.linalg.norm(self.vel))
+        vx, vy, vz = self.vel.tolist()
+        speed = math.sqrt(vx * vx + vy * vy + vz * vz)
         a = self.aoa  # the angle n_w is taken at: the last block's
         v_lof = self.liftoff_speed_mps
         if v_lof > 0.0:
             s, ds, _ = min_jerk_step((speed - 0.8 * v_lof) / (0.2 * v_lof))
             self._lift_w, self._lift_dw = float(s), float(ds) / (0.2 * v_lof)
         if self.aoa_k > 0.0 and speed > 1.0:
-            self._lift_axis = np.array([np.sin(a), 0.0, -np.cos(a)])  # n_w = this . f
+            self._lift_axis = np.array([math.sin(a), 0.0, -math.cos(a)])  # n_w = this . f
             n_w = self._lift_axis @ f_b_mps2
             self._lift_u = float(n_w) / speed**2
 
@@ -1143,7 +1211,7 @@ class NavFilter:
         self.pos = self.pos + dx[POS]
         self.vel = self.vel + dx[VEL]
         dth = dx[ATT]
-        self.q = quat_normalize(quat_multiply(quat_from_rotvec(dth), self.q))
+        self.q = quat_rotate_by_rotvec(self.q, dth, left=True)
         self.w = self.w + dx[RATE]
         self.bias = self.bias + dx[self.layout.bias]
         self.dr = self.dr + dx[self.layout.dr]
@@ -1154,7 +1222,8 @@ class NavFilter:
                 self.aoa_k += float(da[1])
         # reset Jacobian of the attitude error (first order): G = I except
         # G[ATT, ATT] = I - [dtheta]x / 2
-        hx, hy, hz = (0.5 * dth).tolist()
+        hx, hy, hz = dth.tolist()
+        hx, hy, hz = 0.5 * hx, 0.5 * hy, 0.5 * hz
         ga = np.array([[1.0, hz, -hy], [-hz, 1.0, hx], [hy, -hx, 1.0]])
         p = self.P
         p[ATT, :] = ga @ p[ATT, :]

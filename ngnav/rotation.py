@@ -14,21 +14,39 @@ import math
 import numpy as np
 
 
+def _mul4(p: list[float], q: list[float]) -> list[float]:
+    """Hamilton product of two quaternions given as 4 floats each."""
+    pw, px, py, pz = p
+    qw, qx, qy, qz = q
+    return [
+        pw * qw - px * qx - py * qy - pz * qz,
+        pw * qx + px * qw + py * qz - pz * qy,
+        pw * qy - px * qz + py * qw + pz * qx,
+        pw * qz + px * qy - py * qx + pz * qw,
+    ]
+
+
+def _unit4(q: list[float]) -> list[float]:
+    """4 floats scaled to a unit quaternion with a non-negative scalar part."""
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    n = -n if w < 0.0 else n
+    return [w / n, x / n, y / n, z / n]
+
+
+def _exp3(x: float, y: float, z: float) -> list[float]:
+    """Exponential map of one rotation vector (rad) as 4 floats."""
+    a = math.sqrt(x * x + y * y + z * z)
+    k1 = 0.5 - a * a / 48.0 if a < 1e-4 else math.sin(0.5 * a) / a
+    return [math.cos(0.5 * a), k1 * x, k1 * y, k1 * z]
+
+
 def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product ``p * q``, shapes (..., 4)."""
     p = np.asarray(p, dtype=float)
     q = np.asarray(q, dtype=float)
     if p.ndim == 1 and q.ndim == 1:
-        pw, px, py, pz = p.tolist()
-        qw, qx, qy, qz = q.tolist()
-        return np.array(
-            [
-                pw * qw - px * qx - py * qy - pz * qz,
-                pw * qx + px * qw + py * qz - pz * qy,
-                pw * qy - px * qz + py * qw + pz * qx,
-                pw * qz + px * qy - py * qx + pz * qw,
-            ]
-        )
+        return np.array(_mul4(p.tolist(), q.tolist()))
     pw, px, py, pz = np.moveaxis(p, -1, 0)
     qw, qx, qy, qz = np.moveaxis(q, -1, 0)
     return np.stack(
@@ -52,10 +70,7 @@ def quat_normalize(q: np.ndarray) -> np.ndarray:
     """Unit quaternion with a non-negative scalar part, shape (..., 4)."""
     q = np.asarray(q, dtype=float)
     if q.ndim == 1:
-        w, x, y, z = q.tolist()
-        n = math.sqrt(w * w + x * x + y * y + z * z)
-        n = -n if w < 0.0 else n
-        return np.array([w / n, x / n, y / n, z / n])
+        return np.array(_unit4(q.tolist()))
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., :1] < 0.0, -q, q)
 
@@ -67,10 +82,7 @@ def quat_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
     """
     rotvec = np.asarray(rotvec, dtype=float)
     if rotvec.ndim == 1:
-        x, y, z = rotvec.tolist()
-        a = math.sqrt(x * x + y * y + z * z)
-        k1 = 0.5 - a * a / 48.0 if a < 1e-4 else math.sin(0.5 * a) / a
-        return np.array([math.cos(0.5 * a), k1 * x, k1 * y, k1 * z])
+        return np.array(_exp3(*rotvec.tolist()))
     angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
     half = 0.5 * angle
     small = angle < 1e-4
@@ -78,6 +90,19 @@ def quat_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
     safe = np.where(small, 1.0, angle)
     k = np.where(small, 0.5 - angle**2 / 48.0, np.sin(half) / safe)
     return np.concatenate([np.cos(half), k * rotvec], axis=-1)
+
+
+def quat_rotate_by_rotvec(q: np.ndarray, rotvec: np.ndarray, *, left: bool) -> np.ndarray:
+    """One unit quaternion (4,) turned by one rotation vector (3,), rad, renormalised.
+
+    ``left=False``: ``q * exp(rotvec)`` (a body-frame increment, as in strapdown
+    integration); ``left=True``: ``exp(rotvec) * q`` (a NED-frame correction, the
+    error-state reset). Equal to :func:`quat_normalize` of :func:`quat_multiply`
+    and :func:`quat_from_rotvec`, without their array overhead.
+    """
+    e = _exp3(*np.asarray(rotvec, dtype=float).tolist())
+    qf = np.asarray(q, dtype=float).tolist()
+    return np.array(_unit4(_mul4(e, qf) if left else _mul4(qf, e)))
 
 
 def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
@@ -172,4 +197,5 @@ _ZXY = np.array([2, 0, 1])
 
 def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross product of (K, 3) arrays (``np.cross`` without its axis handling)."""
-    return a[:, _YZX] * b[:, _ZXY] - a[:, _ZXY] * b[:, _YZX]
+    # np.take on a small axis costs less than fancy indexing
+    return a.take(_YZX, axis=1) * b.take(_ZXY, axis=1) - a.take(_ZXY, axis=1) * b.take(_YZX, axis=1)

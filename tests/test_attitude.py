@@ -3,10 +3,12 @@ import numpy as np
 from ngnav.conventions import G0_MPS2
 from ngnav.motion import fixed_axis_turn, min_jerk_step
 from ngnav.rotation import (
+    cross_rows,
     quat_from_rotvec,
     quat_multiply,
     quat_normalize,
     quat_rotate,
+    quat_rotate_by_rotvec,
     quat_to_rotvec,
 )
 from ngnav.strapdown import integrate_rate, rotation_angle_about
@@ -61,3 +63,25 @@ def test_min_jerk_step_float_path_matches_arrays():
     # the exact step: s(1/2) = 1/2, ds(1/2) = 30/16, constant outside
     assert min_jerk_step(0.5)[:2] == (0.5, 1.875)
     assert min_jerk_step(2.0) == (1.0, 0.0, 0.0)
+
+
+def test_cross_rows_is_the_cross_product():
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(2, 21, 3))
+    np.testing.assert_allclose(cross_rows(a, b), np.cross(a, b), rtol=0, atol=1e-15)
+
+
+def test_quat_rotate_by_rotvec_is_the_normalised_product():
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        q = quat_normalize(rng.normal(size=4))
+        rv = rng.normal(size=3) * rng.choice([1e-6, 1e-2, 1.0])
+        e = quat_from_rotvec(rv)
+        np.testing.assert_allclose(
+            quat_rotate_by_rotvec(q, rv, left=False),
+            quat_normalize(quat_multiply(q, e)),
+            atol=1e-15,
+        )
+        np.testing.assert_allclose(
+            quat_rotate_by_rotvec(q, rv, left=True), quat_normalize(quat_multiply(e, q)), atol=1e-15
+        )

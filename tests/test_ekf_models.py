@@ -15,6 +15,7 @@ from filters.ekf import (
     NavFilter,
 )
 from filters.state import ATT, B_F, RATE, VEL
+from ngnav.conventions import gravity_n_mps2
 from ngnav.flight import quat_from_euler
 from ngnav.frontend import ArraySolver
 from ngnav.layout import ArrayLayout, nine_accelerometer_cube
@@ -311,6 +312,27 @@ def test_trapezoid_is_exact_for_constant_angular_acceleration():
     np.testing.assert_allclose(nf.w, a * t, rtol=1e-12)
     q_exact = quat_normalize(quat_from_rotvec(0.5 * a * t * t))
     np.testing.assert_allclose(nf.q, q_exact, atol=1e-12)
+
+
+def test_trapezoid_is_exact_for_constant_specific_force():
+    """Without rotation a constant force gives v = a t and p = a t^2 / 2 exactly, in any block
+    size, with ``a = (I + (P_att - tr(P_att) I) / 2) C f + g`` (the attitude error's mean)."""
+    nf, _, _ = _filter()
+    f_b = np.array([1.2, -0.4, -9.0])
+    dt = 1e-3
+    c = dcm_from_quat(nf.q)
+    pa = nf.P[ATT, ATT]
+    a = (np.eye(3) + 0.5 * (pa - np.trace(pa) * np.eye(3))) @ c @ f_b + gravity_n_mps2()
+    nf.set_last_sample(np.zeros(3), f_b)
+    nf.vel = np.array([12.0, -3.0, 0.5])
+    pos0, vel0 = nf.pos.copy(), nf.vel.copy()
+    t = 0.0
+    for k in (10, 7, 10, 3, 10):
+        nf.P[ATT, ATT] = pa  # keep the mean's correction fixed over the run
+        nf.propagate(np.zeros((k, 3)), np.tile(f_b, (k, 1)), dt)
+        t += k * dt
+    np.testing.assert_allclose(nf.vel, vel0 + a * t, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(nf.pos, pos0 + vel0 * t + 0.5 * a * t * t, rtol=0, atol=1e-12)
 
 
 def test_rate_product_jacobian_shrinks_rates_inside_their_uncertainty():
