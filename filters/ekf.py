@@ -354,6 +354,7 @@ class NavFilter:
         self._t12 = np.eye(12)
         self._eye12 = np.eye(N_NAV)
         self._q12_cache: dict[tuple[int, float], np.ndarray] = {}
+        self._q_walk_cache: dict[float, np.ndarray] = {}
         self._weights_cache: dict[tuple[int, float], tuple[np.ndarray, ...]] = {}
         if self.solve_matrix is not None:
             self._solve_rep = np.repeat(np.asarray(self.solve_matrix, dtype=float), 3, axis=1)
@@ -610,7 +611,6 @@ class NavFilter:
         sg : array (k, 3N), optional
             Feature sensitivity to the sensor positions (with ``DR`` states).
         """
-        n = self.layout.n
         t = k * dt
         fc = self._fc_base.copy()
         fc[VEL, ATT] = -skew(f_n)
@@ -638,14 +638,24 @@ class NavFilter:
         t12[3:6, 3:6] = c
         t12[6:9, 6:9] = c
         q12 = t12 @ self._q12_body(k, dt) @ t12.T
-        q = np.zeros((n, n))
+        q = self._q_walks(t).copy()
         q[:12, :12] = q12
-        bs = self.layout.bias
-        q[bs, bs] = self.noise.bias_rw_cov * t
-        ia = self.layout.aoa.start
-        if self.layout.n_aoa:
-            q[ia, ia] = self.aoa_rw_rad_rts**2 * t  # the K error (if carried) is constant
         return phi, q
+
+    def _q_walks(self, t: float) -> np.ndarray:
+        """Process noise (n, n) of the random walks over ``t`` s: the biases' and the
+        angle-of-attack offset's (the K error, if carried, is constant); cached per t."""
+        q = self._q_walk_cache.get(t)
+        if q is None:
+            n = self.layout.n
+            q = np.zeros((n, n))
+            bs = self.layout.bias
+            q[bs, bs] = self.noise.bias_rw_cov * t
+            if self.layout.n_aoa:
+                ia = self.layout.aoa.start
+                q[ia, ia] = self.aoa_rw_rad_rts**2 * t
+            self._q_walk_cache[t] = q
+        return q
 
     def _q12_body(self, k: int, dt: float) -> np.ndarray:
         """Navigation-block noise (12, 12) of ``k`` samples with ``C = I`` (cached per k).

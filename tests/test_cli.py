@@ -58,3 +58,15 @@ def test_help_lists_commands():
     out = run("--help").stdout
     for cmd in ("paper", "calibrate", "grey", "bench"):
         assert cmd in out
+
+
+def test_bench_filter_command():
+    """Alternating repeats of the pipeline and the bare loop; a window without blocks is an error."""
+    out = run("bench-filter", "--scenario", "tactical", "--seconds", "3", "--repeats", "2").stdout
+    assert "1000 Hz" in out and "(300 blocks)" in out
+    runs = [float(v) for v in out.split("pipeline runs (s):")[1].split(",")]
+    assert len(runs) == 2 and all(r > 0 for r in runs)
+    ratio = float(out.split("pipeline / bare loop time:")[1].split("x")[0])
+    assert ratio > 1.0  # the pipeline does more than filterpy's bare predict/update
+    proc = run("bench-filter", "--scenario", "static", "--seconds", "5", check=False)
+    assert proc.returncode == 2 and "hold no filter block" in proc.stderr
