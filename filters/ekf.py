@@ -282,6 +282,7 @@ class NavFilter:
 
     def __post_init__(self) -> None:
         self.quad_pairs = np.asarray(self.quad_pairs, dtype=int).reshape(-1, 2)
+        self.antenna_b_m = np.asarray(self.antenna_b_m, dtype=float).reshape(3)
         n_dr = 0
         if self.noise.position_sigma_m > 0:
             if self.sensor_axes_b is None or self.solve_matrix is None:
@@ -785,13 +786,15 @@ class NavFilter:
         c = dcm_from_quat(q_nb)
         r = self.antenna_b_m
         cr = c @ r
-        cwr = c @ np.cross(omega_b_rps, r)
+        wx, wy, wz = np.asarray(omega_b_rps, dtype=float).tolist()
+        rx, ry, rz = r.tolist()
+        cwr = c @ np.array([wy * rz - wz * ry, wz * rx - wx * rz, wx * ry - wy * rx])
         n = self.layout.n
         hp = np.zeros((3, n))
-        hp[:, POS] = np.eye(3)
+        hp[:, POS] = self._eye3
         hp[:, ATT] = -skew(cr)
         hv = np.zeros((3, n))
-        hv[:, VEL] = np.eye(3)
+        hv[:, VEL] = self._eye3
         hv[:, ATT] = -skew(cwr)
         hv[:, RATE] = -c @ skew(r)
         return cr, cwr, hp, hv
@@ -836,7 +839,7 @@ class NavFilter:
             return GpsUpdateResult(nis_p, float("nan"), False, False, nis_h, nis_vt)
         nis_p, ok_p = self._gated_update(yp, rp, hp)
         _, cwr, _, hv = self.gps_model(self.q, self.w)  # after the position update
-        rv = np.eye(3) * float(vel_sigma_mps) ** 2
+        rv = self._eye3 * float(vel_sigma_mps) ** 2
         yv = vel_ned_mps - (self.vel + cwr)
         nis_v, ok_v = self._gated_update(yv, rv, hv)
         self.counters.gps_used += int(ok_p or ok_v)

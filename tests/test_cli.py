@@ -61,7 +61,7 @@ def test_help_lists_commands():
 
 
 def test_bench_filter_command():
-    """Alternating repeats of the pipeline and the bare loop; a window without blocks is an error."""
+    """Pipeline and bare loop alternate; a window without filter blocks is an error."""
     out = run("bench-filter", "--scenario", "tactical", "--seconds", "3", "--repeats", "2").stdout
     assert "1000 Hz" in out and "(300 blocks)" in out
     runs = [float(v) for v in out.split("pipeline runs (s):")[1].split(",")]
