@@ -470,7 +470,10 @@ class NavFilter:
         self.pos = self.pos + (k * dt) * self.vel + y[1]
         self.vel = self.vel + y[0]
         # attitude: exact product of the sample rotations, with the coning term
-        rot = cum[-1] + 0.5 * cross_rows(cum[:-1], alpha).sum(axis=0)
+        # sum_s cum_s x alpha_s / 2, the axial vector of sum_s cum_s alpha_s^T
+        m01, m02, m10, m12, m20, m21 = (cum[:-1].T @ alpha).ravel()[[1, 2, 3, 5, 6, 7]].tolist()
+        cx, cy, cz = cum[-1].tolist()
+        rot = [cx + 0.5 * (m12 - m21), cy + 0.5 * (m20 - m02), cz + 0.5 * (m01 - m10)]
         self.q = quat_rotate_by_rotvec(self.q, rot, left=False)
         self.w = w[-1].copy()
         self._last_wdot = wdot[-1].copy()

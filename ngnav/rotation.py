@@ -92,7 +92,9 @@ def quat_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
     return np.concatenate([np.cos(half), k * rotvec], axis=-1)
 
 
-def quat_rotate_by_rotvec(q: np.ndarray, rotvec: np.ndarray, *, left: bool) -> np.ndarray:
+def quat_rotate_by_rotvec(
+    q: np.ndarray, rotvec: np.ndarray | list[float], *, left: bool
+) -> np.ndarray:
     """One unit quaternion (4,) turned by one rotation vector (3,), rad, renormalised.
 
     ``left=False``: ``q * exp(rotvec)`` (a body-frame increment, as in strapdown
