@@ -903,6 +903,11 @@ class NavFilter:
         lift = self._unblended_aoa()
         return float(np.sqrt(j @ self.P @ j + lift * lift * self.blend_remainder_var()))
 
+    def _speed(self) -> float:
+        """``|v|`` of the nominal velocity, m/s (on floats: it runs every block)."""
+        vx, vy, vz = self.vel.tolist()
+        return math.sqrt(vx * vx + vy * vy + vz * vz)
+
     def blend_remainder_var(self) -> float:
         """Variance of the lift-off blend ``w(V)`` beyond its linear term (dimensionless).
 
@@ -919,8 +924,7 @@ class NavFilter:
         v_lof = self.liftoff_speed_mps
         if not self.layout.n_aoa or v_lof <= 0.0:
             return 0.0
-        vx, vy, vz = self.vel.tolist()
-        speed = math.sqrt(vx * vx + vy * vy + vz * vz)
+        speed = self._speed()
         if speed <= 1.0:
             return 0.0
         width = 0.2 * v_lof
@@ -949,8 +953,7 @@ class NavFilter:
         ``w(V)``. The angle of attack so depends on the velocity and force-bias states
         too; :meth:`body_velocity_model` carries both in its Jacobian.
         """
-        vx, vy, vz = self.vel.tolist()
-        speed = math.sqrt(vx * vx + vy * vy + vz * vz)
+        speed = self._speed()
         a = self.aoa  # the angle n_w is taken at: the last block's
         v_lof = self.liftoff_speed_mps
         if v_lof > 0.0:
