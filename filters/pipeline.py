@@ -532,7 +532,7 @@ class Pipeline:
         se = self._se
         dt = self.dt
         noise = filter_noise(self.solver, cfg, None if se is None else se[:, 0:6])
-        if self.method == "oracle":
+        if self.method == "oracle" or not cfg.filter.position_states:
             # the oracle removes the whole geometry error: nothing left to estimate
             noise = replace(noise, position_sigma_m=0.0)
         self.noise = noise

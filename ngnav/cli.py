@@ -227,6 +227,7 @@ def _print_counts(counts: dict[str, int], indent: str = "  ") -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    from ngnav.conventions import G0_MPS2
     from ngnav.runio import write_truth_csv
     from ngnav.simulate import simulate_flight
     from telemetry.runfiles import truth_path, write_run
@@ -245,6 +246,14 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         f"({sim.samples.n_channels} channels), {len(sim.fixes)} GPS fixes, "
         f"{int(sim.saturated.any(axis=1).sum())} saturated samples -> {', '.join(where) or '-'}",
         flush=True,
+    )
+    e_pos = sim.unknown_position_error_mps2() / G0_MPS2 * 1e6
+    noise = float(np.median(sim.config.noise_sigma_mps2)) / G0_MPS2 * 1e6
+    print(
+        f"unknown sensor positions ({sim.config.position_sigma_m * 1e3:g} mm 1-sigma): channel "
+        f"error {np.sqrt(np.mean(e_pos**2)):.1f} ug rms, {np.abs(e_pos).max():.1f} ug at most, "
+        f"beside {noise:.0f} ug of noise per sample; filter position states "
+        f"{'on' if sim.config.filter.position_states and sim.config.position_sigma_m > 0 else 'off'}"
     )
     if args.stream is not None:
         from telemetry.inputs import input_frames

@@ -136,6 +136,10 @@ class FilterSettings:
     is fused exactly there, as in an offline run; a later one is fused at the
     next block with a ``v dt`` time shift and counted. Estimates are output
     at the fusion horizon, so they trail the newest sample by this lag.
+
+    ``position_states``: carry the residual sensor positions as filter states
+    (``DR``, see :mod:`filters.state`) when the calibration gives a position
+    1-sigma; False leaves them out (the scatter is then unmodelled).
     """
 
     rate_hz: float = 100.0
@@ -155,6 +159,7 @@ class FilterSettings:
     fusion_lag_s: float = 0.1
     hold_wdot_sigma_rps2: float = 2.0
     hold_force_sigma_mps2: float = 3.0
+    position_states: bool = True
 
     def __post_init__(self) -> None:
         if self.compensation not in COMPENSATIONS:

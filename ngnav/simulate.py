@@ -67,6 +67,26 @@ class SimulatedRun:
         """The array as really built."""
         return self.true_errors.real_layout(self.config.layout)
 
+    def unknown_position_error_mps2(self) -> np.ndarray:
+        """Channel errors (T, N), m/s^2, that the sensor positions left unknown cause.
+
+        ``theta_i . (wdot x dr_i + w x (w x dr_i))`` over the truth's motion, with
+        ``dr_i`` the real position minus the calibrated one (the scatter the
+        filter's ``DR`` states model) and ``theta_i`` the real sensing axis. Set
+        beside the channel noise and bias it says whether a flight makes the
+        scatter worth carrying as states (``filter.position_states``).
+        """
+        nominal = self.config.layout
+        dr = self.true_errors.position_error_b_m - self.config.known_errors.position_error_b_m
+        axes = self.true_errors.real_axes(nominal)
+        tr = self.truth
+        out = np.empty((tr.omega_b_rps.shape[0], dr.shape[0]))
+        for i in range(dr.shape[0]):
+            lever = np.cross(tr.omega_dot_b_rps2, dr[i])
+            lever += np.cross(tr.omega_b_rps, np.cross(tr.omega_b_rps, dr[i]))
+            out[:, i] = lever @ axes[i]
+        return out
+
 
 def bench_calibration(
     spec: AccelerometerSpec,

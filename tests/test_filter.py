@@ -506,3 +506,34 @@ def test_a_lost_tilt_is_reopened_and_relearned_from_gps_velocity(tactical):
     rms_ok = np.sqrt(np.mean(err_ok.att_ned_rad[m, 0:2] ** 2))
     assert rms < 1.25 * rms_ok
     assert ok.counts["attitude reopened after rejected velocities"] == 0  # a good run never
+
+
+def test_unknown_position_error_is_the_real_array_minus_the_calibrated_one(tactical):
+    # the real array's outputs minus those of an array with the real axes at the
+    # calibrated positions, through the design matrix (independent of the cross products)
+    from ngnav.layout import ArrayLayout
+
+    real = tactical.true_layout()
+    dr = tactical.true_errors.position_error_b_m - tactical.config.known_errors.position_error_b_m
+    calibrated = ArrayLayout(real.positions_b_m - dr, real.axes_b)
+    tr = tactical.truth
+    args = (tr.omega_dot_b_rps2, tr.f_b_mps2, tr.omega_b_rps)
+    ref = real.outputs(*args) - calibrated.outputs(*args)
+    got = tactical.unknown_position_error_mps2()
+    assert np.abs(ref).max() > 1e-4  # tactical's turns make the 0.5 mm scatter visible
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+
+
+def test_position_states_switch(tactical):
+    from dataclasses import replace
+
+    from filters.bench import _first_seconds
+
+    samples, fixes = _first_seconds(tactical.samples, tactical.fixes, 3.0)
+    on = run_filter(samples, fixes, tactical.config)
+    cfg = replace(tactical.config, filter=replace(tactical.config.filter, position_states=False))
+    off = run_filter(samples, fixes, cfg)
+    n_dr = 3 * tactical.config.layout.n_sensors
+    assert tactical.config.position_sigma_m > 0
+    assert on.state_size - off.state_size == n_dr
+    assert np.all(np.isfinite(off.estimates.pos_ned_m))
