@@ -37,7 +37,10 @@ through the motion, so they act as a bias that changes with every manoeuvre;
 as white noise they leave the filter overconfident. Carried as states they are
 exact (linear in ``dr``) and estimated in flight: the in-flight part of the
 position calibration. The block is present when the configuration gives a
-nonzero position uncertainty (``position_sigma_m``).
+nonzero position uncertainty (``position_sigma_m``) and ``filter.position_states``
+is on: where the motion keeps the scatter's channel error far below the noise
+(``ngnav simulate`` prints both; ``uav-survey``), the states have nothing to learn
+and are left out.
 
 Why ``AOA``: an aircraft's velocity leaves its body x axis by the angle of
 attack, which its lift needs: it grows with load factor and falls with speed.

@@ -31,7 +31,7 @@ truth to separate files.
                    aoa_prior_sigma_deg, aoa_rw_deg_rts, aoa_lift_k_m, aoa_lift_k_sigma_m,
                    liftoff_speed_mps,
                    gps_gap_reset_s, fusion_lag_s,
-                   hold_wdot_sigma_rps2, hold_force_sigma_mps2
+                   hold_wdot_sigma_rps2, hold_force_sigma_mps2, position_states
 """
 
 from __future__ import annotations

@@ -232,6 +232,9 @@ def test_simulate_then_run_cli(tmp_path):
         cwd=ROOT,
     )
     assert sim.returncode == 0, sim.stderr
+    # the unknown positions' channel error beside the noise, and whether states model it
+    assert "unknown sensor positions (0.5 mm 1-sigma): channel error" in sim.stdout
+    assert "filter position states on" in sim.stdout
     for f in ("array.csv", "gps.csv", "config.toml", "truth.csv"):
         assert (d / f).is_file()
     out = subprocess.run([*run, "run", str(d)], capture_output=True, text=True, cwd=ROOT)
