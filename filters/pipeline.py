@@ -533,7 +533,8 @@ class Pipeline:
         dt = self.dt
         noise = filter_noise(self.solver, cfg, None if se is None else se[:, 0:6])
         if self.method == "oracle" or not cfg.filter.position_states:
-            # the oracle removes the whole geometry error: nothing left to estimate
+            # no DR states: the oracle removes the whole geometry error (nothing left to
+            # estimate), or the configuration leaves the scatter unmodelled
             noise = replace(noise, position_sigma_m=0.0)
         self.noise = noise
         nf = NavFilter(
