@@ -70,6 +70,15 @@ SIDESLIP_REMAINDER_UPDATES = 4.0
 #: their errors (``tactical``, 16 runs, 2-4 s: attitude NEES 7.3, angle of attack 6.1).
 ATTITUDE_REMAINDER_UPDATES = 40.0
 
+#: Consecutive fixes after an outage that fail the position gate before the filter is put
+#: on the fix anyway. The first fix after an outage resets position and velocity when it
+#: passes the gate (a glitch then is one fix off, rejected); but a coast that ended more
+#: sure of itself than its errors fails the gate on every fix, and waiting for the general
+#: run of rejections (the pipeline's ``RESET_AFTER_REJECTS``, 5 s at 5 Hz) left
+#: ``uav-survey`` run 11 off for 5 s after its outage. Three fixes in a row that disagree
+#: with the coast are the receiver, not a glitch.
+GAP_RESET_AFTER_REJECTS = 3
+
 #: FRD body axes of the vehicle-model pseudo-measurements: lateral (sideslip) and
 #: vertical (angle of attack).
 LATERAL = 1
@@ -124,6 +133,30 @@ def remainder_variance(rem: Remainder) -> float:
     """
     extra = ATTITUDE_REMAINDER_UPDATES - SIDESLIP_REMAINDER_UPDATES
     return SIDESLIP_REMAINDER_UPDATES * rem.var + extra * rem.var_att
+
+
+def update_correlated(
+    x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, h: np.ndarray, m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Kalman update whose measurement noise ``v`` is correlated with the state error.
+
+    As filterpy's ``update(x, P, z, R, H)`` (residual ``z - H x``), but with
+    ``m`` (n, nz) = ``E[dx v^T]``, the prior error's covariance with the noise (here:
+    the propagation noise of the block the measurement was made over). filterpy's
+    update runs on the state augmented with ``v`` (covariance ``[[P, M], [M^T, R]]``,
+    ``H_a = [H, I]``, no further noise), which gives the correlated-noise filter
+    (Simon, *Optimal State Estimation*, 7.1): ``S = H P H^T + H M + M^T H^T + R``,
+    ``K = (P H^T + M) S^-1``, ``P+ = P - K (H P + M^T)``; the noise rows are dropped.
+    """
+    n, nz = x.shape[0], z.shape[0]
+    pa = np.empty((n + nz, n + nz))
+    pa[:n, :n] = p
+    pa[:n, n:] = m
+    pa[n:, :n] = m.T
+    pa[n:, n:] = r
+    ha = np.hstack([h, np.eye(nz)])
+    xa, pa = kf_update(np.concatenate([x, np.zeros(nz)]), pa, z, np.zeros((nz, nz)), ha)
+    return xa[:n], pa[:n, :n]
 
 
 def _quadratic_form(y: np.ndarray, s: np.ndarray) -> float:
@@ -182,12 +215,20 @@ class FilterNoise:
     position_sigma_m : float
         Prior 1-sigma of each residual sensor-position error (per axis, m);
         0 leaves the ``DR`` block out (see :mod:`filters.state`).
+    quad_cross_cov : array (6, nq), optional
+        Per-sample covariance of the ``[wdot, f]`` noise with the quadratic terms'
+        noise, as solved from the same channel samples (the solve mixes every
+        channel into every feature: on the nine-cube the correlations are 0.25 and
+        0.5). A block's rate measurement then shares noise with the propagation
+        that led to it; :meth:`NavFilter.update_rate` carries that cross-covariance.
+        None treats them as independent.
     """
 
     feature_cov: np.ndarray
     bias_prior_cov: np.ndarray
     bias_rw_cov: np.ndarray
     position_sigma_m: float = 0.0
+    quad_cross_cov: np.ndarray | None = None
 
 
 @dataclass
@@ -308,6 +349,12 @@ class NavFilter:
             m = getattr(self.noise, name)
             if m.shape != (k, k):
                 raise ValueError(f"noise.{name} must be ({k}, {k}), got {m.shape}")
+        cq = self.noise.quad_cross_cov
+        if cq is not None and np.shape(cq) != (6, self.layout.nq):
+            raise ValueError(
+                f"noise.quad_cross_cov must be (6, {self.layout.nq}), got {np.shape(cq)}"
+            )
+        self._block: tuple[int, float, np.ndarray] | None = None
         if not 0.5 < self.gate_probability < 1.0:
             raise ValueError(f"gate_probability must be in (0.5, 1), got {self.gate_probability}")
         self.gate3 = float(chi2.ppf(self.gate_probability, 3))
@@ -481,6 +528,7 @@ class NavFilter:
         self.t_s += k * dt
         f_n = y[2] - self._g
         self._predict_covariance(k, dt, c0, f_n, sg)
+        self._block = (k, dt, c0)  # for the rate measurement of this block
         self.counters.blocks += 1
         self.counters.samples += k
         return w
@@ -688,18 +736,58 @@ class NavFilter:
         return qb
 
     # ------------------------------------------------------------- measurements
+    def rate_noise_cross(
+        self, k: int, dt: float, c: np.ndarray, held: np.ndarray | None = None
+    ) -> np.ndarray | None:
+        """``E[dx v^T]`` (n, nq): a block's propagation noise with its rate measurement's.
+
+        The block's ``k`` samples (interval ``dt``, ``C_nb`` ``c`` at its start) drive
+        the error state as :meth:`_q12_body` says (sample ``j`` enters the rate as
+        ``-dt n_w``, the attitude as ``-(k - j) dt^2 C n_w``, the velocity and position
+        likewise with ``n_f``; minus: errors are true - estimate), and their mean
+        quadratic terms, noise ``v = mean n_q``, are the rate measurement. With
+        ``X = noise.quad_cross_cov`` the cross-covariance is ``-dt X_w`` for the rate,
+        ``-dt C X_f`` for the velocity, ``-dt^2 lag C X_w`` and ``-dt^2 lag C X_f`` for
+        the attitude and position (``lag`` the mean of ``k - j`` over the samples
+        measured; ``held`` (k,) marks held ones, which carry no sample noise). None
+        without the cross-covariance or with no sample measured.
+        """
+        cq = self.noise.quad_cross_cov
+        if cq is None or self.layout.nq == 0:
+            return None
+        if held is None:
+            lag = 0.5 * (k - 1)
+        else:
+            j = np.arange(1, k + 1)[~np.asarray(held, dtype=bool)]
+            if j.size == 0:
+                return None
+            lag = float(np.mean(k - j))
+        cw, cf = c @ cq[0:3], c @ cq[3:6]
+        a = dt * dt * lag
+        m = np.zeros((self.layout.n, self.layout.nq))
+        m[POS] = -a * cf
+        m[VEL] = -dt * cf
+        m[ATT] = -a * cw
+        m[RATE] = -dt * cq[0:3]
+        return m
+
     def update_rate(
         self,
         quad_mean: np.ndarray,
         w_block: np.ndarray,
         k: int,
         sg: np.ndarray | None = None,
+        held: np.ndarray | None = None,
     ) -> float | None:
         """Update with a block's mean solved rate-quadratic terms (nq,); returns the NIS.
 
-        ``sg`` is the block's :meth:`geometry_jacobian` (with ``DR`` states).
+        ``sg`` is the block's :meth:`geometry_jacobian` (with ``DR`` states). Right
+        after :meth:`propagate` over the same block, the measurement's noise is
+        correlated with that block's propagation noise (:meth:`rate_noise_cross`;
+        ``held`` (K,) marks its held samples) and the update carries it.
         """
         nq = self.layout.nq
+        block, self._block = self._block, None
         if nq == 0 or not self.rate_measurement:
             return None
         prr = self.P[RATE, RATE]
@@ -714,12 +802,19 @@ class NavFilter:
             pred = pred + sg[6:] @ self.dr
         y = quad_mean - pred
         self.last_rate_innovation = y
+        m = None if block is None else self.rate_noise_cross(*block, held)
         s = h @ self.P @ h.T + r
+        if m is not None:
+            hm = h @ m
+            s += hm + hm.T
         nis = _quadratic_form(y, s)
         if nis > self.gate_q:
             self.counters.rate_rejected += 1
             return nis
-        self.x, self.P = kf_update(self.x, self.P, y, r, h)
+        if m is None:
+            self.x, self.P = kf_update(self.x, self.P, y, r, h)
+        else:
+            self.x, self.P = update_correlated(self.x, self.P, y, r, h, m)
         self._inject()
         self.counters.rate_updates += 1
         return nis
@@ -816,7 +911,8 @@ class NavFilter:
         ``dt_fix_s`` is the fix time minus the filter time (|dt| below one
         array sample); the prediction is moved by ``v dt``. With ``reset``
         (the first fix after an outage) a fix that passes the position gate
-        is not fused: :meth:`reset_to_fix` puts position and velocity on it.
+        is not fused: :meth:`reset_to_fix` puts position and velocity on it; so
+        does the :data:`GAP_RESET_AFTER_REJECTS`-th fix in a row that fails it.
         """
         cr, _, hp, _ = self.gps_model(self.q, self.w)
         rp = np.diag(np.broadcast_to(np.asarray(pos_sigma_m, dtype=float), 3) ** 2)
@@ -826,7 +922,8 @@ class NavFilter:
         nis_vt = float(yp[2] ** 2 / sp[2, 2]) if sp[2, 2] > 0 else float("inf")
         if reset:
             nis_p = _quadratic_form(yp, sp)
-            if np.isfinite(nis_p) and nis_p <= self.gate3:
+            passed = np.isfinite(nis_p) and nis_p <= self.gate3
+            if passed or self._consec_rejects + 1 >= GAP_RESET_AFTER_REJECTS:
                 _, cwr, _, hv = self.gps_model(self.q, self.w)
                 yv = vel_ned_mps - (self.vel + cwr)
                 nis_v = _quadratic_form(yv, hv @ self.P @ hv.T + np.eye(3) * vel_sigma_mps**2)

@@ -35,6 +35,7 @@ from filters.ekf import (
     FilterNoise,
     LostTrackError,
     NavFilter,
+    update_correlated,
 )
 from filters.state import ATT, B_F, POS, RATE, VEL
 from ngnav.compensation import _QUAD_I, _QUAD_J
@@ -185,6 +186,8 @@ def filter_noise(
     feature_cov = solver.covariance()
     bias_prior_cov = s @ np.diag(b0**2) @ s.T
     bias_rw_cov = s @ np.diag(cfg.bias_rw_mps2_rts**2) @ s.T
+    # one sample's [wdot, f] noise with its quadratic terms' (the same block's: raw)
+    quad_cross_cov = feature_cov[0:6, 6:].copy()
     if feedback is not None:
         k = s.shape[0]
         a = np.linalg.inv(np.eye(6) + feedback[0:6])
@@ -201,6 +204,7 @@ def filter_noise(
         bias_prior_cov=bias_prior_cov,
         bias_rw_cov=bias_rw_cov,
         position_sigma_m=cfg.position_sigma_m,
+        quad_cross_cov=quad_cross_cov,
     )
 
 
@@ -778,20 +782,20 @@ class Pipeline:
             _, p_bound = kf_predict(np.zeros(nf.layout.n), p_bound, fb, qb)
         if n_ok and nq:
             quad = xs[:, 6:] if n_ok == kk else xs[~bad, 6:]
-            nis = nf.update_rate(quad.sum(axis=0) * (1.0 / n_ok), w_blk, n_ok, sg)
+            held = bad if n_ok < kk else None
+            nis = nf.update_rate(quad.sum(axis=0) * (1.0 / n_ok), w_blk, n_ok, sg, held)
             self.last_rate_nis = np.nan if nis is None else nis
             if self.keep_estimates:
                 self._rate_nis.append(self.last_rate_nis)
                 self._rate_nis_t.append(nf.t_s)
             if p_bound is not None and nis is not None and nis <= nf.gate_q:
                 _, hb = nf.rate_model(truth.omega_b_rps[i0 + 1 : i1 + 1], sg_true)
-                _, p_bound = kf_update(
-                    np.zeros(nf.layout.n),
-                    p_bound,
-                    np.zeros(nq),
-                    self.noise.feature_cov[6:, 6:] / n_ok,
-                    hb,
-                )
+                x0, r_q = np.zeros(nf.layout.n), self.noise.feature_cov[6:, 6:] / n_ok
+                m_true = nf.rate_noise_cross(kk, dt, c_true[i0], held)
+                if m_true is None:
+                    _, p_bound = kf_update(x0, p_bound, np.zeros(nq), r_q, hb)
+                else:
+                    _, p_bound = update_correlated(x0, p_bound, np.zeros(nq), r_q, hb, m_true)
         good = xs[~bad] if 0 < n_ok < kk else xs
         self._last_mean = good.sum(axis=0) * (1.0 / good.shape[0])
         if row == self._hist.shape[0]:

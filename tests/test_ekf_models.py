@@ -23,9 +23,11 @@ from ngnav.motion import min_jerk_step
 from ngnav.rotation import (
     dcm_from_quat,
     euler_from_quat,
+    quat_conjugate,
     quat_from_rotvec,
     quat_multiply,
     quat_normalize,
+    quat_to_rotvec,
     skew,
 )
 from tests.helpers import initialise_level
@@ -464,3 +466,78 @@ def test_blend_remainder_matches_sampled_speed_errors(speed_mps, speed_sigma_mps
     se = np.sqrt(((r - r.mean()) ** 2).var() / r.size)
     assert want > 0 and got > 0
     assert abs(got - want) < 4 * se + 1e-3 * want
+
+
+def test_correlated_update_is_filterpys_correlated_filter():
+    """update_correlated (filterpy's update on the noise-augmented state) equals filterpy's
+    own KalmanFilter.update_correlated, the textbook formulas, for random SPD inputs."""
+    from filterpy.kalman import KalmanFilter
+
+    from filters.ekf import update_correlated
+
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        n, nz = 6, 3
+        a = rng.normal(size=(n + nz, n + nz))
+        joint = a @ a.T + 0.1 * np.eye(n + nz)  # covariance of [dx; v], M its corner
+        p, m, r = joint[:n, :n], joint[:n, n:], joint[n:, n:]
+        h = rng.normal(size=(nz, n))
+        x, z = rng.normal(size=n), rng.normal(size=nz)
+        kf = KalmanFilter(dim_x=n, dim_z=nz)
+        kf.x, kf.P, kf.M = x.copy(), p.copy(), m.copy()
+        kf.update_correlated(z, r, h)
+        x2, p2 = update_correlated(x, p, z, r, h, m)
+        np.testing.assert_allclose(x2, kf.x, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(p2, kf.P, rtol=0, atol=1e-10)
+        # and it differs from the update that ignores M (the test can tell them apart)
+        _, p0 = kf_update(x, p, z, r, h)
+        assert np.abs(p0 - p2).max() > 1e-3
+
+
+def test_rate_noise_cross_is_the_propagations_covariance_with_the_quad_noise():
+    """Monte Carlo (fixed seed): the errors one propagated block leaves (true - estimate, with
+    feature noise drawn from the solver's covariance) against the mean of the same samples'
+    quadratic-term noise, the rate measurement's noise, give NavFilter.rate_noise_cross."""
+    solver = ArraySolver(nine_accelerometer_cube(0.1), np.full(9, 1e-3))
+    cov = solver.covariance()
+    nf = NavFilter(
+        FilterNoise(cov, cov, cov * 1e-6, quad_cross_cov=cov[0:6, 6:]),
+        PAIRS,
+        np.zeros(3),
+    )
+    k, dt = 20, 1e-3
+    q0 = quat_from_euler(0.3, -0.2, 1.0)
+    w0 = np.array([0.3, -0.2, 0.4])
+    nf.initialise(0.0, np.zeros(3), np.array([20.0, 1.0, -1.0]), q0, w0, 1.0, 0.1, 0.01, 0.01)
+    wd = np.tile([0.5, -0.3, 0.2], (k, 1))
+    f = np.tile([1.0, 0.5, -9.8], (k, 1))
+    start = (nf.pos.copy(), nf.vel.copy(), nf.q.copy(), nf.w.copy(), nf.t_s, nf.P.copy())
+
+    def run(dwd: np.ndarray, df: np.ndarray) -> np.ndarray:
+        nf.pos, nf.vel, nf.q, nf.w, nf.t_s, nf.P = (
+            v.copy() if hasattr(v, "copy") else v for v in start
+        )
+        nf.set_last_sample(wd[0], f[0])
+        nf.propagate(wd + dwd, f + df, dt)
+        return np.concatenate([nf.pos, nf.vel, nf.q, nf.w])
+
+    truth = run(np.zeros((k, 3)), np.zeros((k, 3)))
+    rng = np.random.default_rng(5)
+    chol = np.linalg.cholesky(cov)
+    n_trials = 4000
+    prod = np.empty((n_trials, 12, 3))
+    for t in range(n_trials):
+        noise = rng.standard_normal((k, 9)) @ chol.T
+        est = run(noise[:, 0:3], noise[:, 3:6])
+        d_att = quat_to_rotvec(quat_multiply(truth[6:10], quat_conjugate(est[6:10])))
+        err = np.concatenate([truth[0:6] - est[0:6], d_att, truth[10:13] - est[10:13]])
+        prod[t] = np.outer(err, noise[:, 6:].mean(axis=0))
+    got = prod.mean(axis=0)
+    se = prod.std(axis=0) / np.sqrt(n_trials)
+    want = nf.rate_noise_cross(k, dt, dcm_from_quat(q0))[:12]
+    assert np.all(np.abs(got - want) < 4.0 * se + 1e-15)
+    # the check has power: the rate and velocity rows are many standard errors from zero
+    assert np.abs(want[RATE]).max() > 10 * se[RATE].max()
+    assert np.abs(want[VEL]).max() > 10 * se[VEL].max()
+    # held samples carry no noise: with every sample held there is no cross-covariance
+    assert nf.rate_noise_cross(k, dt, np.eye(3), np.ones(k, dtype=bool)) is None

@@ -422,6 +422,30 @@ def test_first_fix_after_an_outage_resets_position_and_velocity(tactical):
     assert np.linalg.norm(err2.pos_ned_m[e, :2]) < 10.0
 
 
+def test_fixes_that_keep_failing_the_gate_after_an_outage_reset_on_the_third(tactical):
+    """After an outage, fixes that all disagree with the coast (here every fix from then on
+    50 m north: the coast looks 50 m off) are not a glitch: the first two are rejected,
+    the third (GAP_RESET_AFTER_REJECTS) puts position and velocity on the fix, and the
+    fixes after it are fused normally."""
+    from dataclasses import replace
+
+    from filters.ekf import GAP_RESET_AFTER_REJECTS
+
+    fixes, cfg = tactical.fixes, tactical.config
+    out = fixes.select((fixes.t_s < 30.0) | (fixes.t_s >= 40.0))
+    lat = out.lat_deg.copy()
+    lat[out.t_s >= 40.0] += 50.0 / 111_000.0
+    res = run_filter(tactical.samples, replace(out, lat_deg=lat), cfg)
+    inn = res.innovations
+    first = int(np.flatnonzero(inn.t_s >= 40.0)[0])
+    n = GAP_RESET_AFTER_REJECTS
+    assert n == 3
+    assert not inn.pos_accepted[first : first + n - 1].any()
+    assert inn.pos_accepted[first + n - 1 : first + n + 10].all()
+    assert res.counts["gps resets after an outage"] == 1
+    assert res.counts["gps resets after rejections"] == 0
+
+
 def test_a_long_gap_of_held_samples_widens_the_covariance(tactical):
     """0.5 s of lost array samples in a 2 g turn: the forecast stands in, and the
     covariance grows with its error (filter.hold_*), so the attitude stays consistent."""
