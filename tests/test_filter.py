@@ -299,9 +299,9 @@ def test_consistency_small_monte_carlo(monte_carlo):
 @pytest.mark.xfail(
     strict=True,
     reason="known miss (README): tactical, 50 runs, whole run pos / vel / att / rate / all / "
-    "aoa 91.1 / 94.0 / 95.7 / 92.3 / 74.7 / 85.9 % inside; from 10 s 90.5 / 94.3 / 95.9 / "
-    "93.4 / 78.5 / 92.6 % (the joint is pessimistic: 24 % of epochs below); another 50 "
-    "runs (run.seed=7): 85.5 / 82.5 / 79.0 / 90.6 / 84.9 / 69.4 %, misses on both sides",
+    "aoa 91.2 / 94.6 / 96.8 / 92.8 / 78.9 / 90.0 % inside; from 10 s 90.6 / 95.1 / 97.0 / "
+    "93.1 / 82.5 / 93.7 % (the joint is pessimistic: 19 % of epochs below); uav-survey "
+    "96.2 / 90.8 / 89.5 / 91.9 / 88.4 / 93.7 %",
 )
 def test_target_is_met(monte_carlo):
     """The issue's target at CI size: every NEES block and NIS inside the bounds on
