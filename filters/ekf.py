@@ -136,7 +136,12 @@ def remainder_variance(rem: Remainder) -> float:
 
 
 def update_correlated(
-    x: np.ndarray, p: np.ndarray, z: np.ndarray, r: np.ndarray, h: np.ndarray, m: np.ndarray
+    x: np.ndarray,
+    p: np.ndarray,
+    z: np.ndarray,
+    r: np.ndarray,
+    h: np.ndarray,
+    m: np.ndarray | None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Kalman update whose measurement noise ``v`` is correlated with the state error.
 
@@ -147,7 +152,10 @@ def update_correlated(
     ``H_a = [H, I]``, no further noise), which gives the correlated-noise filter
     (Simon, *Optimal State Estimation*, 7.1): ``S = H P H^T + H M + M^T H^T + R``,
     ``K = (P H^T + M) S^-1``, ``P+ = P - K (H P + M^T)``; the noise rows are dropped.
+    With ``m`` None (independent noise) it is filterpy's plain update.
     """
+    if m is None:
+        return kf_update(x, p, z, r, h)
     n, nz = x.shape[0], z.shape[0]
     pa = np.empty((n + nz, n + nz))
     pa[:n, :n] = p
@@ -811,10 +819,7 @@ class NavFilter:
         if nis > self.gate_q:
             self.counters.rate_rejected += 1
             return nis
-        if m is None:
-            self.x, self.P = kf_update(self.x, self.P, y, r, h)
-        else:
-            self.x, self.P = update_correlated(self.x, self.P, y, r, h, m)
+        self.x, self.P = update_correlated(self.x, self.P, y, r, h, m)
         self._inject()
         self.counters.rate_updates += 1
         return nis

@@ -790,12 +790,14 @@ class Pipeline:
                 self._rate_nis_t.append(nf.t_s)
             if p_bound is not None and nis is not None and nis <= nf.gate_q:
                 _, hb = nf.rate_model(truth.omega_b_rps[i0 + 1 : i1 + 1], sg_true)
-                x0, r_q = np.zeros(nf.layout.n), self.noise.feature_cov[6:, 6:] / n_ok
-                m_true = nf.rate_noise_cross(kk, dt, c_true[i0], held)
-                if m_true is None:
-                    _, p_bound = kf_update(x0, p_bound, np.zeros(nq), r_q, hb)
-                else:
-                    _, p_bound = update_correlated(x0, p_bound, np.zeros(nq), r_q, hb, m_true)
+                _, p_bound = update_correlated(
+                    np.zeros(nf.layout.n),
+                    p_bound,
+                    np.zeros(nq),
+                    self.noise.feature_cov[6:, 6:] / n_ok,
+                    hb,
+                    nf.rate_noise_cross(kk, dt, c_true[i0], held),
+                )
         good = xs[~bad] if 0 < n_ok < kk else xs
         self._last_mean = good.sum(axis=0) * (1.0 / good.shape[0])
         if row == self._hist.shape[0]:
