@@ -92,6 +92,10 @@ VERTICAL = 2
 _BLEND_Z = np.linspace(-6.0, 6.0, 41)
 _BLEND_W = np.exp(-0.5 * _BLEND_Z**2) / np.exp(-0.5 * _BLEND_Z**2).sum()
 
+#: The six rate products a forecast compensation subtracts, as (i, j) of ``w_i w_j``
+#: (:data:`ngnav.compensation` order: ``wx^2, wy^2, wz^2, wy wz, wx wz, wx wy``).
+_ALL_PRODUCTS = ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))
+
 #: The (attitude, velocity) error rows of the body-velocity models' second-order term.
 _DTHETA_DV = np.r_[ATT, VEL]
 _DTHETA_DV_IX = np.ix_(_DTHETA_DV, _DTHETA_DV)
@@ -313,6 +317,13 @@ class NavFilter:
     aoa_lift_k_sigma_m : float
         > 0 (with ``aoa_lift_k_m``) carries the error of ``K`` as a second, constant
         ``AOA`` state with this prior 1-sigma, m.
+    quad_feedback : array (nq, 6), optional
+        With a forecast compensation: the sensitivity of the solved quadratic terms
+        to the forecast's six rate products ``(wx^2, wy^2, wz^2, wy wz, wx wz, wx wy)``
+        (their rows of ``S E``). The forecast extrapolates the filter's own rate
+        history, so a rate error ``dw`` returns in the compensated terms as
+        ``E_q J6 dw`` beside the products' own ``J dw``; the rate measurement's
+        Jacobian carries both (see :meth:`rate_model`). None: the products alone.
     """
 
     noise: FilterNoise
@@ -327,6 +338,7 @@ class NavFilter:
     aoa_lift_k_m: float = 0.0
     liftoff_speed_mps: float = 0.0
     aoa_lift_k_sigma_m: float = 0.0
+    quad_feedback: np.ndarray | None = None
     counters: Counters = field(default_factory=Counters)
 
     def __post_init__(self) -> None:
@@ -419,6 +431,17 @@ class NavFilter:
         for r, (i, j) in enumerate(self.quad_pairs.tolist()):
             d[r, i, j] += 1.0
             d[r, j, i] += 1.0
+        if self.quad_feedback is not None:
+            fb = np.asarray(self.quad_feedback, dtype=float)
+            if fb.shape != (self.layout.nq, 6):
+                raise ValueError(
+                    f"quad_feedback must have shape ({self.layout.nq}, 6), got {fb.shape}"
+                )
+            d6 = np.zeros((6, 3, 3))
+            for r, (i, j) in enumerate(_ALL_PRODUCTS):
+                d6[r, i, j] += 1.0
+                d6[r, j, i] += 1.0
+            d = d + np.einsum("rs,scm->rcm", fb, d6)
         self._quad_d = d
 
     # ------------------------------------------------------------------ set-up
@@ -861,6 +884,9 @@ class NavFilter:
         estimate ``w_i`` made of its own error would claim information that
         the measurement does not hold (a straight flight's yaw rate would
         look measured and the heading would turn overconfident).
+
+        With ``quad_feedback`` the rate columns also carry the forecast
+        compensation's return of the rate error, ``E_q J6(w)``.
         """
         i, j = self.quad_pairs[:, 0], self.quad_pairs[:, 1]
         inv_k = 1.0 / w_block.shape[0]

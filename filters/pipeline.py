@@ -553,6 +553,7 @@ class Pipeline:
             aoa_lift_k_m=cfg.filter.aoa_lift_k_m,
             liftoff_speed_mps=cfg.filter.liftoff_speed_mps,
             aoa_lift_k_sigma_m=cfg.filter.aoa_lift_k_sigma_m,
+            quad_feedback=None if se is None else se[6:, 6:12],
         )
         self.nf = nf
         nq = self._pairs.shape[0]

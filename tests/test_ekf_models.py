@@ -18,8 +18,10 @@ from filters.state import ATT, B_F, RATE, VEL
 from ngnav.conventions import gravity_n_mps2
 from ngnav.flight import quat_from_euler
 from ngnav.frontend import ArraySolver
-from ngnav.layout import ArrayLayout, nine_accelerometer_cube
+from ngnav.layout import ArrayLayout, kinematic_features, nine_accelerometer_cube
 from ngnav.motion import min_jerk_step
+from ngnav.mounting import MountingErrors
+from ngnav.paper import outward_directions
 from ngnav.rotation import (
     dcm_from_quat,
     euler_from_quat,
@@ -541,3 +543,38 @@ def test_rate_noise_cross_is_the_propagations_covariance_with_the_quad_noise():
     assert np.abs(want[VEL]).max() > 10 * se[VEL].max()
     # held samples carry no noise: with every sample held there is no cross-covariance
     assert nf.rate_noise_cross(k, dt, np.eye(3), np.ones(k, dtype=bool)) is None
+
+
+def test_rate_jacobian_carries_the_forecast_compensations_return_of_the_rate_error():
+    """A forecast compensation subtracts ``S E phi`` with ``phi``'s rate products taken
+    from the filter's own rate, so a rate error returns in the compensated products.
+    Against the real channel model (a 6 mm outward offset, the known error the
+    compensation removes, and the nominal solve): with ``quad_feedback`` the Jacobian
+    predicts the compensated products' change to second order in the rate error;
+    the products' Jacobian alone misses it by ``E_qq``'s 7 %."""
+    nominal = nine_accelerometer_cube(0.1)
+    errors = MountingErrors(0.006 * outward_directions(nominal), np.zeros((9, 2)))
+    real = errors.real_layout(nominal)
+    solver = ArraySolver(nominal, np.full(9, 1e-3))
+    se = solver.solve_matrix @ errors.error_matrix(nominal)
+    cov = solver.covariance()
+    noise = FilterNoise(cov, cov, cov * 1e-6)
+    with_fb = NavFilter(noise, PAIRS, np.zeros(3), quad_feedback=se[6:, 6:12])
+    plain = NavFilter(noise, PAIRS, np.zeros(3))
+    wdot, f = np.array([3.0, -2.0, 1.0]), np.array([1.0, 0.5, -19.6])
+    w_true = np.array([0.8, -1.5, 2.0])
+    dw = np.array([2e-4, -1e-4, 1.5e-4])
+    w_est = w_true - dw
+    raw = solver.solve_matrix @ real.outputs(wdot, f, w_true)
+    z = (raw - se @ kinematic_features(wdot, f, w_est))[6:]
+    block = np.tile(w_est, (4, 1))
+    pred, h = with_fb.rate_model(block)
+    pred_plain, h_plain = plain.rate_model(block)
+    np.testing.assert_array_equal(pred, pred_plain)
+    y = z - pred
+    lin = h[:, RATE] @ dw
+    assert np.max(np.abs(y - lin)) < 1e-3 * np.max(np.abs(y))
+    miss = np.max(np.abs(y - h_plain[:, RATE] @ dw)) / np.max(np.abs(y))
+    assert 0.05 < miss < 0.1, miss
+    with pytest.raises(ValueError, match="quad_feedback"):
+        NavFilter(noise, PAIRS, np.zeros(3), quad_feedback=np.zeros((3, 3)))
