@@ -29,6 +29,7 @@ of the sideslip model's quadratic part (:meth:`NavFilter.sideslip_second_order`)
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -95,6 +96,19 @@ _BLEND_W = np.exp(-0.5 * _BLEND_Z**2) / np.exp(-0.5 * _BLEND_Z**2).sum()
 #: The six rate products a forecast compensation subtracts, as (i, j) of ``w_i w_j``
 #: (:data:`ngnav.compensation` order: ``wx^2, wy^2, wz^2, wy wz, wx wz, wx wy``).
 _ALL_PRODUCTS = ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))
+
+
+def _product_derivatives(pairs: Sequence[Sequence[int]]) -> np.ndarray:
+    """``D`` (len(pairs), 3, 3) with ``d(w_i w_j)/dw = D[r] @ w`` for each pair ``(i, j)``.
+
+    ``D[r, c, m] = [c = i][m = j] + [c = j][m = i]``.
+    """
+    d = np.zeros((len(pairs), 3, 3))
+    for r, (i, j) in enumerate(pairs):
+        d[r, i, j] += 1.0
+        d[r, j, i] += 1.0
+    return d
+
 
 #: The (attitude, velocity) error rows of the body-velocity models' second-order term.
 _DTHETA_DV = np.r_[ATT, VEL]
@@ -426,22 +440,14 @@ class NavFilter:
         self._weights_cache: dict[tuple[int, float], tuple[np.ndarray, ...]] = {}
         if self.solve_matrix is not None:
             self._solve_rep = np.repeat(np.asarray(self.solve_matrix, dtype=float), 3, axis=1)
-        # d(w_i w_j)/dw = D @ w per rate product: D[r, c, m] = [c = i][m = j] + [c = j][m = i]
-        d = np.zeros((self.layout.nq, 3, 3))
-        for r, (i, j) in enumerate(self.quad_pairs.tolist()):
-            d[r, i, j] += 1.0
-            d[r, j, i] += 1.0
+        d = _product_derivatives(self.quad_pairs.tolist())
         if self.quad_feedback is not None:
             fb = np.asarray(self.quad_feedback, dtype=float)
             if fb.shape != (self.layout.nq, 6):
                 raise ValueError(
                     f"quad_feedback must have shape ({self.layout.nq}, 6), got {fb.shape}"
                 )
-            d6 = np.zeros((6, 3, 3))
-            for r, (i, j) in enumerate(_ALL_PRODUCTS):
-                d6[r, i, j] += 1.0
-                d6[r, j, i] += 1.0
-            d = d + np.einsum("rs,scm->rcm", fb, d6)
+            d = d + np.einsum("rs,scm->rcm", fb, _product_derivatives(_ALL_PRODUCTS))
         self._quad_d = d
 
     # ------------------------------------------------------------------ set-up
