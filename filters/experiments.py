@@ -26,6 +26,7 @@ from filters.evaluate import (
 )
 from filters.gps_only import run_gps_only
 from filters.pipeline import RunResult, run_filter
+from filters.share_reference import consistent_share
 from ngnav.flight_scenario import FlightScenario
 from ngnav.simulate import SimulatedRun, simulate_flight
 
@@ -292,17 +293,22 @@ def _finite_mean(x: np.ndarray, axis: int | None = None) -> np.ndarray:
         return np.where(n > 0, total / np.maximum(n, 1), np.nan)
 
 
-def _block(per_run: list[np.ndarray], dim: int, runs: int) -> tuple[dict, np.ndarray]:
+def _block(
+    per_run: list[np.ndarray], dim: int, runs: int, reference: bool = False
+) -> tuple[dict, np.ndarray]:
     """Run-averaged statistic of one block against its two-sided 95 % bounds.
 
     Returns the summary (with the shares below and above the bounds: a
     pessimistic filter falls below, an optimistic one above) and the per-epoch
-    average (E,).
+    average (E,). ``reference`` adds ``consistent_share``: the share a filter
+    consistent by construction reaches with this statistic's correlation in time
+    (:func:`filters.share_reference.consistent_share`), given two or more runs.
     """
-    avg = _finite_mean(np.vstack(per_run), axis=0)
+    stacked = np.vstack(per_run)
+    avg = _finite_mean(stacked, axis=0)
     lo, hi = chi2_bounds(dim, runs)
     ok = np.isfinite(avg)
-    return {
+    out = {
         "dim": dim,
         "lower": lo,
         "upper": hi,
@@ -310,7 +316,10 @@ def _block(per_run: list[np.ndarray], dim: int, runs: int) -> tuple[dict, np.nda
         "share_inside": share_inside(avg, dim, runs),
         "share_below": float(np.mean(avg[ok] < lo)),
         "share_above": float(np.mean(avg[ok] > hi)),
-    }, avg
+    }
+    if reference and runs >= 2:
+        out["consistent_share"] = asdict(consistent_share(stacked, dim))
+    return out, avg
 
 
 def nees_profile(t_s: np.ndarray, averages: dict[str, np.ndarray], window_s: float) -> list[dict]:
@@ -344,6 +353,7 @@ def consistency(
     progress: bool = False,
     profile_s: float | None = None,
     from_s: float | None = None,
+    reference: bool = False,
 ) -> dict:
     """NEES/NIS over ``runs`` Monte Carlo runs; share of epochs inside the 95 % bounds.
 
@@ -357,6 +367,10 @@ def consistency(
     the profile cover the whole run.
     ``profile_s`` adds ``profile``: the NEES blocks' means over windows of that
     many seconds (:func:`nees_profile`).
+    ``reference`` adds to every block the share a consistent filter would reach on
+    it (``consistent_share``, :mod:`filters.share_reference`): the criterion's own
+    spread, from the statistic's correlation in time (about a minute per block
+    set on ``tactical``'s 50 runs).
     """
     import dask
     from tqdm import tqdm
@@ -399,25 +413,27 @@ def consistency(
     averages = {}
     for name, d in dims.items():
         out["blocks"][f"NEES {name}"], averages[name] = _block(
-            [r["nees"][name] for r in results], d, runs
+            [r["nees"][name] for r in results], d, runs, reference
         )
     for key, d in (("nis_pos", 3), ("nis_vel", 3)):
-        out["blocks"][f"NIS gps {key[4:]}"] = _block([r[key] for r in results], d, runs)[0]
+        out["blocks"][f"NIS gps {key[4:]}"] = _block([r[key] for r in results], d, runs, reference)[
+            0
+        ]
     nq = results[0]["rate_dim"]
     if nq:
-        out["blocks"]["NIS rate"] = _block([r["rate_nis"] for r in results], nq, runs)[0]
+        out["blocks"]["NIS rate"] = _block([r["rate_nis"] for r in results], nq, runs, reference)[0]
     if from_s is not None:
         after = results[0]["t_s"] >= from_s
         out["blocks_from"] = {
-            f"NEES {name}": _block([r["nees"][name][after] for r in results], d, runs)[0]
+            f"NEES {name}": _block([r["nees"][name][after] for r in results], d, runs, reference)[0]
             for name, d in dims.items()
         }
         for key, d in (("nis_pos", 3), ("nis_vel", 3)):
             late = [r[key][r["t_fix_s"] >= from_s] for r in results]
-            out["blocks_from"][f"NIS gps {key[4:]}"] = _block(late, d, runs)[0]
+            out["blocks_from"][f"NIS gps {key[4:]}"] = _block(late, d, runs, reference)[0]
         if nq:
             late = [r["rate_nis"][r["rate_t_s"] >= from_s] for r in results]
-            out["blocks_from"]["NIS rate"] = _block(late, nq, runs)[0]
+            out["blocks_from"]["NIS rate"] = _block(late, nq, runs, reference)[0]
     if profile_s is not None:
         out["profile"] = nees_profile(results[0]["t_s"], averages, profile_s)
     out["att_rms_deg_median"] = float(np.median([r["att_rms_deg"] for r in results]))

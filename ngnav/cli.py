@@ -395,6 +395,7 @@ def cmd_consistency(args: argparse.Namespace) -> int:
         progress=not args.json,
         profile_s=args.profile,
         from_s=args.from_s,
+        reference=args.reference,
     )
     if args.json:
         print(json.dumps(out, indent=2))
@@ -415,6 +416,13 @@ def cmd_consistency(args: argparse.Namespace) -> int:
                 f"mean {b['mean']:7.2f}  inside {100 * b['share_inside']:5.1f} % of epochs "
                 f"(below {100 * b['share_below']:4.1f} %, above {100 * b['share_above']:4.1f} %)"
             )
+            ref = b.get("consistent_share")
+            if ref is not None:
+                print(
+                    f"  {'':14s} a consistent filter: median {100 * ref['median']:5.1f} %, "
+                    f"5th percentile {100 * ref['p05']:5.1f} %, below 90 % in "
+                    f"{100 * ref['prob_below_90']:4.1f} % of {ref['replicas']} run sets"
+                )
     print(f"  median attitude RMS over runs: {out['att_rms_deg_median']:.3f} deg")
     for d in out["diverged"]:
         print(f"  run {d['run']} diverged and is left out: {d['reason']}")
@@ -543,6 +551,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         metavar="S",
         help="also print every block's statistics over the epochs from S seconds on",
+    )
+    p.add_argument(
+        "--reference",
+        action="store_true",
+        help="also print the share a consistent filter would reach on each block, from the "
+        "statistic's correlation in time (filters.share_reference; slower)",
     )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_consistency)
