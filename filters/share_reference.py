@@ -81,8 +81,8 @@ def statistic_autocorrelation(per_run: np.ndarray) -> np.ndarray:
     z = np.where(ok, z, 0.0)
     n = q.shape[1]
 
-    def lagged_sums(x: np.ndarray) -> np.ndarray:
-        f = np.fft.rfft(x, 2 * n, axis=1)
+    def lagged_sums(a: np.ndarray) -> np.ndarray:
+        f = np.fft.rfft(a, 2 * n, axis=1)
         return np.fft.irfft((f * f.conj()).real.sum(axis=0), 2 * n)[:n]
 
     # unbiased: each lag's sum over the pairs it has (a constant statistic reads 1 at every lag)
@@ -135,7 +135,7 @@ def consistent_share(
     m = c.shape[0]
     amp = np.sqrt(np.clip(np.fft.rfft(c).real, 0.0, None))
     var = float(np.fft.irfft(amp**2, m)[0])  # > 1 where negative eigenvalues were cut
-    amp = amp.astype(np.float32)  # single precision: twice as fast, the share unchanged
+    amp = amp.astype(np.float32)  # single precision: half the memory (tactical's joint 44 -> 39 s)
     lo, hi = chi2_bounds(dim, runs)
     rng = np.random.default_rng(seed)
     shares = np.empty(replicas)
