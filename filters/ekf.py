@@ -39,6 +39,7 @@ from filterpy.kalman import update as kf_update
 from scipy.stats import chi2
 
 from filters.state import ATT, B_F, B_WDOT, N_NAV, POS, RATE, VEL, StateLayout, b_quad
+from ngnav.compensation import QUAD_PAIRS
 from ngnav.conventions import gravity_n_mps2
 from ngnav.flight import quat_from_euler
 from ngnav.motion import min_jerk_step
@@ -92,10 +93,6 @@ VERTICAL = 2
 #: their standard error (scratch check, the blend's start, middle and end).
 _BLEND_Z = np.linspace(-6.0, 6.0, 41)
 _BLEND_W = np.exp(-0.5 * _BLEND_Z**2) / np.exp(-0.5 * _BLEND_Z**2).sum()
-
-#: The six rate products a forecast compensation subtracts, as (i, j) of ``w_i w_j``
-#: (:data:`ngnav.compensation` order: ``wx^2, wy^2, wz^2, wy wz, wx wz, wx wy``).
-_ALL_PRODUCTS = ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))
 
 
 def _product_derivatives(pairs: Sequence[Sequence[int]]) -> np.ndarray:
@@ -447,7 +444,7 @@ class NavFilter:
                 raise ValueError(
                     f"quad_feedback must have shape ({self.layout.nq}, 6), got {fb.shape}"
                 )
-            d = d + np.einsum("rs,scm->rcm", fb, _product_derivatives(_ALL_PRODUCTS))
+            d = d + np.einsum("rs,scm->rcm", fb, _product_derivatives(QUAD_PAIRS))
         self._quad_d = d
 
     # ------------------------------------------------------------------ set-up

@@ -38,6 +38,10 @@ STATE_CHANNELS: tuple[str, ...] = (
 #: Index pairs giving the quadratic features [wx^2, wy^2, wz^2, wy wz, wx wz, wx wy].
 _QUAD_I = np.array([0, 1, 2, 1, 0, 0])
 _QUAD_J = np.array([0, 1, 2, 2, 2, 1])
+#: The same pairs as ``(i, j)`` tuples of ``w_i w_j``, in that order.
+QUAD_PAIRS: tuple[tuple[int, int], ...] = tuple(
+    zip(_QUAD_I.tolist(), _QUAD_J.tolist(), strict=True)
+)
 RATE = slice(0, 3)
 RATE_DOT = slice(3, 6)
 FORCE = slice(6, 9)
