@@ -130,24 +130,68 @@ def _constraint_axes(axis: int, aoa_rad: float) -> tuple[np.ndarray, np.ndarray]
 class Remainder(NamedTuple):
     """A body-velocity model's second-order remainder (m/s; variances m^2/s^2).
 
-    ``var_att`` is the variance of its attitude-product part alone (``dtheta^T A
-    dtheta / 2``), the part no update of the model shrinks.
+    ``mean_att`` and ``var_att`` are the mean and variance of its attitude-product
+    part alone (``dtheta^T A dtheta / 2``), the part no update of the model shrinks.
     """
 
     mean: float
     var: float
     var_att: float
+    mean_att: float = 0.0
 
 
-def remainder_variance(rem: Remainder) -> float:
+class SideslipRecord(NamedTuple):
+    """One zero-sideslip update as the filter made it (``NavFilter.sideslip_log``).
+
+    The nominal state it linearised at, the model's value and Jacobian there, and
+    the second-order remainder the update assumed: what
+    :mod:`filters.remainder_study` needs to measure the remainder actually left
+    against a truth.
+
+    Attributes
+    ----------
+    t_s : float
+        Filter time, s.
+    q_nb : array (4,)
+        Nominal attitude, body (FRD) to NED, Hamilton scalar first.
+    vel_ned_mps : array (3,)
+        Nominal velocity, NED, m/s.
+    v_lat_mps : float
+        The model's body-lateral velocity at the nominal state, m/s.
+    h_att, h_vel : arrays (3,)
+        Its Jacobian on the NED attitude error (m/s per rad) and on the velocity error.
+    remainder : Remainder
+        The second-order remainder's mean and variances at the update.
+    r_m2ps2 : float
+        The update's R: the sigma's variance plus the remainder as counted, m^2/s^2.
+    accepted : bool
+        Whether the update passed its gate.
+    """
+
+    t_s: float
+    q_nb: np.ndarray
+    vel_ned_mps: np.ndarray
+    v_lat_mps: float
+    h_att: np.ndarray
+    h_vel: np.ndarray
+    remainder: Remainder
+    r_m2ps2: float
+    accepted: bool
+
+
+def remainder_variance(
+    rem: Remainder,
+    updates: float = SIDESLIP_REMAINDER_UPDATES,
+    attitude_updates: float = ATTITUDE_REMAINDER_UPDATES,
+) -> float:
     """What a body-velocity update adds to R for its remainder, m^2/s^2.
 
-    The variance counted :data:`SIDESLIP_REMAINDER_UPDATES` times and its attitude-product
-    part :data:`ATTITUDE_REMAINDER_UPDATES` times: each count is the number of
-    consecutive updates that share one value of that part.
+    The variance counted ``updates`` times (default :data:`SIDESLIP_REMAINDER_UPDATES`)
+    and its attitude-product part ``attitude_updates`` times (default
+    :data:`ATTITUDE_REMAINDER_UPDATES`): each count is the number of consecutive
+    updates that share one value of that part.
     """
-    extra = ATTITUDE_REMAINDER_UPDATES - SIDESLIP_REMAINDER_UPDATES
-    return SIDESLIP_REMAINDER_UPDATES * rem.var + extra * rem.var_att
+    return updates * rem.var + (attitude_updates - updates) * rem.var_att
 
 
 def update_correlated(
@@ -335,6 +379,18 @@ class NavFilter:
         history, so a rate error ``dw`` returns in the compensated terms as
         ``E_q J6 dw`` beside the products' own ``J dw``; the rate measurement's
         Jacobian carries both (see :meth:`rate_model`). None: the products alone.
+    remainder_updates, attitude_remainder_updates : float
+        How many times the body-velocity updates count their second-order
+        remainder's variance and its attitude-product part (>= 1;
+        :func:`remainder_variance`). Defaults :data:`SIDESLIP_REMAINDER_UPDATES`
+        and :data:`ATTITUDE_REMAINDER_UPDATES`; ``ngnav remainder`` measures what
+        a flight's remainders need.
+
+    Attributes
+    ----------
+    sideslip_log : list of SideslipRecord or None
+        Set to a list to have every zero-sideslip update recorded in it (None, the
+        default, records nothing).
     """
 
     noise: FilterNoise
@@ -350,9 +406,16 @@ class NavFilter:
     liftoff_speed_mps: float = 0.0
     aoa_lift_k_sigma_m: float = 0.0
     quad_feedback: np.ndarray | None = None
+    remainder_updates: float = SIDESLIP_REMAINDER_UPDATES
+    attitude_remainder_updates: float = ATTITUDE_REMAINDER_UPDATES
     counters: Counters = field(default_factory=Counters)
 
     def __post_init__(self) -> None:
+        for name in ("remainder_updates", "attitude_remainder_updates"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and 1.0 <= v <= 1e4):
+                raise ValueError(f"{name} must be a number in [1, 10000], got {v}")
+        self.sideslip_log: list[SideslipRecord] | None = None
         self.quad_pairs = np.asarray(self.quad_pairs, dtype=int).reshape(-1, 2)
         self.antenna_b_m = np.asarray(self.antenna_b_m, dtype=float).reshape(3)
         n_dr = 0
@@ -1160,7 +1223,9 @@ class NavFilter:
     def _body_velocity_update(self, axis: int, sigma_v_mps: float) -> tuple[float, bool]:
         v_axis, h = self.body_velocity_model(self.q, self.vel, axis, self.aoa)
         rem = self.body_velocity_second_order(axis)
-        var = sigma_v_mps**2 + remainder_variance(rem)
+        var = sigma_v_mps**2 + remainder_variance(
+            rem, self.remainder_updates, self.attitude_remainder_updates
+        )
         blend_var = self.blend_remainder_var() if axis == VERTICAL else 0.0
         if blend_var > 0.0:
             # the blend beyond its linear term moves the angle, and the wind-normal
@@ -1170,7 +1235,17 @@ class NavFilter:
             lift = self._unblended_aoa()
             var += dv_da * dv_da * lift * lift * blend_var
         r = np.array([[var]])
-        return self._gated_update(np.array([-(v_axis + rem.mean)]), r, h, self.gate1)
+        log = self.sideslip_log if axis == LATERAL else None
+        if log is not None:
+            t_s, q_nb, vel = self.t_s, self.q.copy(), self.vel.copy()
+        nis, ok = self._gated_update(np.array([-(v_axis + rem.mean)]), r, h, self.gate1)
+        if log is not None:
+            log.append(
+                SideslipRecord(
+                    t_s, q_nb, vel, v_axis, h[0, ATT].copy(), h[0, VEL].copy(), rem, float(var), ok
+                )
+            )
+        return nis, ok
 
     def sideslip_second_order(self) -> Remainder:
         """:meth:`body_velocity_second_order` of the lateral axis (the sideslip model)."""
@@ -1226,6 +1301,7 @@ class NavFilter:
             0.5 * float(np.trace(mp)),
             0.5 * float(np.sum(mp * mp.T)),
             0.5 * float(np.sum(mpa * mpa.T)),
+            0.5 * float(np.trace(mpa)),
         )
 
     def _gated_update(

@@ -35,6 +35,7 @@ from filters.ekf import (
     FilterNoise,
     LostTrackError,
     NavFilter,
+    SideslipRecord,
     update_correlated,
 )
 from filters.state import ATT, B_F, POS, RATE, VEL
@@ -260,6 +261,8 @@ class Pipeline:
     keep_estimates : bool
         Keep every epoch for :meth:`result` (False for an endless live link:
         :meth:`result` then holds the latest epoch only).
+    sideslip_log : list, optional
+        As for :func:`run_filter`.
 
     Raises
     ------
@@ -283,6 +286,7 @@ class Pipeline:
         bound: bool = False,
         on_epoch=None,
         keep_estimates: bool = True,
+        sideslip_log: list[SideslipRecord] | None = None,
     ) -> None:
         method = compensation or cfg.filter.compensation
         if method == "oracle" and (true_layout is None or truth is None):
@@ -307,6 +311,7 @@ class Pipeline:
         self.bound = bound
         self.on_epoch = on_epoch
         self.keep_estimates = keep_estimates
+        self.sideslip_log = sideslip_log
         self.n_epochs = 0
         self.n_channels = cfg.layout.n_sensors
         self.solver = solver
@@ -554,7 +559,10 @@ class Pipeline:
             liftoff_speed_mps=cfg.filter.liftoff_speed_mps,
             aoa_lift_k_sigma_m=cfg.filter.aoa_lift_k_sigma_m,
             quad_feedback=None if se is None else se[6:, 6:12],
+            remainder_updates=cfg.filter.remainder_updates,
+            attitude_remainder_updates=cfg.filter.attitude_remainder_updates,
         )
+        nf.sideslip_log = self.sideslip_log
         self.nf = nf
         nq = self._pairs.shape[0]
         self._nq = nq
@@ -1011,6 +1019,7 @@ def run_filter(
     truth: FlightTruth | None = None,
     bound: bool = False,
     progress=None,
+    sideslip_log: list[SideslipRecord] | None = None,
 ) -> RunResult:
     """Run the GPS/array filter over a whole run (a :class:`Pipeline` fed in arrival order).
 
@@ -1037,6 +1046,9 @@ def run_filter(
         Also run the covariance recursion linearised at ``truth`` (the bound).
     progress : callable, optional
         Called with the fraction done (0..1) now and then.
+    sideslip_log : list, optional
+        Every zero-sideslip update is appended to it as a
+        :class:`filters.ekf.SideslipRecord` (what ``ngnav remainder`` measures).
 
     Raises
     ------
@@ -1064,6 +1076,7 @@ def run_filter(
         true_layout=true_layout,
         truth=truth,
         bound=bound,
+        sideslip_log=sideslip_log,
     )
     try:
         _feed(pipe, samples, fixes, progress)

@@ -442,6 +442,37 @@ def cmd_consistency(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_remainder(args: argparse.Namespace) -> int:
+    from filters.remainder_study import remainder_study
+
+    out = remainder_study(
+        _flight(args), args.runs, args.window, args.workers, progress=not args.json
+    )
+    if args.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    print(
+        f"{out['scenario']}: the zero-sideslip remainder over {out['runs']} runs, against the "
+        f"truth (the filter counts it {out['remainder_updates']:g} times, its attitude part "
+        f"{out['attitude_remainder_updates']:g} times)"
+    )
+    print(
+        "  z2: mean squared remainder over the model's variance (1: the model's size); "
+        "rho: median lag-1 correlation over runs; count: (1 + rho) / (1 - rho), the "
+        "updates one value counts for"
+    )
+    print("    window s        updates      z2    rho  count   att z2  att rho  att count")
+    for w in [*out["windows"], out["whole"]]:
+        label = "whole flight" if w is out["whole"] else f"{w['t0_s']:6.1f}-{w['t1_s']:6.1f}"
+        print(
+            f"    {label:13s} {w['updates']:8d} {w['z2']:7.2f} {w['rho']:6.2f} {w['count']:6.1f} "
+            f"{w['z2_att']:8.2f} {w['rho_att']:8.2f} {w['count_att']:10.1f}"
+        )
+    for msg in out["left_out"]:
+        print(f"  {msg}")
+    return 0
+
+
 def _add_flight_args(p: argparse.ArgumentParser, default: str = "uav-survey") -> None:
     p.add_argument(
         "--scenario",
@@ -560,6 +591,22 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_consistency)
+
+    p = sub.add_parser(
+        "remainder",
+        help="size and persistence of the sideslip model's second-order remainder, against "
+        "the truth of simulated runs (what filter.remainder_updates should be)",
+    )
+    _add_flight_args(p, default="tactical")
+    p.add_argument("--runs", type=int, default=8)
+    p.add_argument(
+        "--window", type=float, default=10.0, help="window length, s (default: %(default)s)"
+    )
+    p.add_argument(
+        "--workers", type=int, default=2, help="dask worker processes (default: %(default)s)"
+    )
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_remainder)
 
     p = sub.add_parser("bench", help="speed of the front end + compensation loop")
     p.add_argument("--samples", type=int, default=20_000)

@@ -140,6 +140,15 @@ class FilterSettings:
     ``position_states``: carry the residual sensor positions as filter states
     (``DR``, see :mod:`filters.state`) when the calibration gives a position
     1-sigma; False leaves them out (the scatter is then unmodelled).
+
+    ``remainder_updates`` and ``attitude_remainder_updates`` (each >= 1): how many
+    times the sideslip and angle-of-attack updates count their second-order
+    remainder's variance, and its attitude-product part, in R: the number of
+    consecutive 5 Hz updates that share one value of it
+    (``filters.ekf.remainder_variance``). The defaults, 4 and 40, are what the
+    shipped flights were tuned and measured with (README, "the sideslip
+    remainder"); ``ngnav remainder`` measures what a flight's remainders actually
+    need, against its truth.
     """
 
     rate_hz: float = 100.0
@@ -160,6 +169,8 @@ class FilterSettings:
     hold_wdot_sigma_rps2: float = 2.0
     hold_force_sigma_mps2: float = 3.0
     position_states: bool = True
+    remainder_updates: float = 4.0
+    attitude_remainder_updates: float = 40.0
 
     def __post_init__(self) -> None:
         if self.compensation not in COMPENSATIONS:
@@ -203,6 +214,10 @@ class FilterSettings:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0.0):
                 raise ValueError(f"filter.{name} must be a finite number >= 0, got {v}")
+        for name in ("remainder_updates", "attitude_remainder_updates"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and 1.0 <= v <= 1e4):
+                raise ValueError(f"filter.{name} must be a number in [1, 10000], got {v}")
         if not (np.isfinite(self.fusion_lag_s) and 0.0 <= self.fusion_lag_s <= 10.0):
             raise ValueError(
                 f"filter.fusion_lag_s must be a number in [0, 10] s, got {self.fusion_lag_s}"

@@ -2,7 +2,12 @@
 
 import numpy as np
 
-from filters.ekf import NavFilter
+from filters.ekf import FilterNoise, NavFilter
+from ngnav.frontend import ArraySolver
+from ngnav.layout import ArrayLayout, nine_accelerometer_cube
+
+#: The three cross products of the rate (wy wz, wx wz, wx wy) as index pairs.
+PAIRS = np.array([[1, 2], [0, 2], [0, 1]])
 
 
 def initialise_level(nf: NavFilter) -> None:
@@ -18,3 +23,23 @@ def initialise_level(nf: NavFilter) -> None:
         np.full(3, 0.01),
         0.01,
     )
+
+
+def level_filter(
+    position_sigma_m: float = 0.0, aoa_sigma_rad: float = 0.0
+) -> tuple[NavFilter, ArrayLayout, ArraySolver]:
+    """A filter on the nine-accelerometer cube (1 mg noise), initialised level at rest."""
+    layout = nine_accelerometer_cube(0.1)
+    solver = ArraySolver(layout, np.full(9, 1e-3))
+    cov = solver.covariance()
+    noise = FilterNoise(cov, cov, cov * 1e-6, position_sigma_m)
+    nf = NavFilter(
+        noise,
+        PAIRS,
+        np.zeros(3),
+        sensor_axes_b=layout.axes_b,
+        solve_matrix=solver.solve_matrix,
+        aoa_prior_sigma_rad=aoa_sigma_rad,
+    )
+    initialise_level(nf)
+    return nf, layout, solver

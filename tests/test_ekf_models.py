@@ -32,28 +32,8 @@ from ngnav.rotation import (
     quat_to_rotvec,
     skew,
 )
-from tests.helpers import initialise_level
-
-PAIRS = np.array([[1, 2], [0, 2], [0, 1]])
-
-
-def _filter(
-    position_sigma_m: float = 0.0, aoa_sigma_rad: float = 0.0
-) -> tuple[NavFilter, ArrayLayout, ArraySolver]:
-    layout = nine_accelerometer_cube(0.1)
-    solver = ArraySolver(layout, np.full(9, 1e-3))
-    cov = solver.covariance()
-    noise = FilterNoise(cov, cov, cov * 1e-6, position_sigma_m)
-    nf = NavFilter(
-        noise,
-        PAIRS,
-        np.zeros(3),
-        sensor_axes_b=layout.axes_b,
-        solve_matrix=solver.solve_matrix,
-        aoa_prior_sigma_rad=aoa_sigma_rad,
-    )
-    initialise_level(nf)
-    return nf, layout, solver
+from tests.helpers import PAIRS, initialise_level
+from tests.helpers import level_filter as _filter
 
 
 def _lift_law_filter() -> NavFilter:
@@ -224,9 +204,9 @@ def test_body_velocity_second_order_terms_match_monte_carlo(axis, aoa_state):
     p[np.ix_(idx, idx)] = px
     nf.P = p
     y0, h = nf.body_velocity_model(nf.q, nf.vel, axis, nf.aoa)
-    mean, var, var_att = nf.body_velocity_second_order(axis)
+    mean, var, var_att, mean_att = nf.body_velocity_second_order(axis)
     if axis == LATERAL:
-        assert (mean, var, var_att) == nf.sideslip_second_order()
+        assert (mean, var, var_att, mean_att) == nf.sideslip_second_order()
     n = 200_000
     x = rng.multivariate_normal(np.zeros(d), px, n)
     dq = np.array([quat_from_rotvec(e) for e in x[:, 0:3]])
@@ -252,6 +232,7 @@ def test_body_velocity_second_order_terms_match_monte_carlo(axis, aoa_state):
     a_m = 0.5 * (np.outer(a_n, nf.vel) + np.outer(nf.vel, a_n)) - (a_n @ nf.vel) * np.eye(3)
     q_att = 0.5 * np.einsum("ki,ij,kj->k", x[:, 0:3], a_m, x[:, 0:3])
     assert q_att.var() == pytest.approx(var_att, rel=0.02)
+    assert abs(q_att.mean() - mean_att) < 4.0 * np.sqrt(var_att / n)
     assert 0.0 < var_att < var
     assert var > 1e-3  # coast-sized errors make the term matter (R is 1.2e-3 at 20 m/s for 0.1 deg)
 
@@ -279,7 +260,7 @@ def test_body_velocity_update_counts_the_correlated_remainder(axis):
     nf.P = p
     sigma = np.deg2rad(0.003)
     v_lat, h = nf.body_velocity_model(nf.q, nf.vel, axis)
-    mean2, var2, var_att = nf.body_velocity_second_order(axis)
+    mean2, var2, var_att, _ = nf.body_velocity_second_order(axis)
     speed = np.hypot(v0[0], v0[1]) if axis == LATERAL else np.linalg.norm(v0)
     r0 = (speed * np.tan(sigma)) ** 2
     assert var2 > 10 * r0  # the remainder dominates, so the factor matters

@@ -1,0 +1,269 @@
+"""How long the zero-sideslip model's second-order remainder persists, against a truth.
+
+The sideslip update (:meth:`filters.ekf.NavFilter.update_sideslip`) linearises the
+body-lateral velocity ``e_y . C^T v`` at the nominal state and adds the variance of
+what the linearisation leaves out (the remainder, second order in the attitude and
+velocity errors) to R, counted ``filter.remainder_updates`` times and its
+attitude-product part ``filter.attitude_remainder_updates`` times: the number of
+consecutive updates that share one value of it. Those counts are properties of a
+flight, not of the filter; this module measures them on simulated flights.
+
+At every sideslip update of a run (:class:`filters.ekf.SideslipRecord`) the truth
+gives the remainder actually left,
+
+``r = e_y . C_true^T v_true - (v_lat + h_vel . dv + h_att . dtheta)``
+
+with ``dtheta`` the NED attitude error (``q_true = exp(dtheta) q``) and ``dv =
+v_true - v``, and its attitude-product part ``r_att = dtheta^T A dtheta / 2``
+(:meth:`filters.ekf.NavFilter.body_velocity_second_order`). Standardised by the
+model's mean and variance, ``z = (r - mean) / sqrt(var)``, a model that describes
+the remainder gives ``E z^2 = 1``; the lag-1 correlation ``rho`` of ``z`` over
+consecutive updates gives, for an AR(1) sequence, the integrated autocorrelation
+``(1 + rho) / (1 - rho)``: the number of updates one value counts for, which is
+what the count in R stands for.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from filters.ekf import CovarianceError, SideslipRecord
+from filters.pipeline import run_filter
+from ngnav.flight import FlightTruth
+from ngnav.flight_scenario import FlightScenario
+from ngnav.rotation import dcm_from_quat, quat_conjugate, quat_multiply, quat_to_rotvec
+
+#: Lag-1 correlations are clipped to this before ``(1 + rho) / (1 - rho)``: a
+#: remainder constant over a window would otherwise count infinitely often.
+RHO_MAX = 0.999
+
+
+@dataclass(frozen=True)
+class RealizedRemainders:
+    """One run's sideslip updates with the remainders the truth shows.
+
+    Attributes
+    ----------
+    t_s : array (U,)
+        Update times, s.
+    r_mps, r_att_mps : arrays (U,)
+        The remainder actually left and its attitude-product part, m/s.
+    mean_mps, var_m2ps2 : arrays (U,)
+        The model's mean (m/s) and variance (m^2/s^2) of the remainder.
+    mean_att_mps, var_att_m2ps2 : arrays (U,)
+        The same for the attitude-product part.
+    """
+
+    t_s: np.ndarray
+    r_mps: np.ndarray
+    r_att_mps: np.ndarray
+    mean_mps: np.ndarray
+    var_m2ps2: np.ndarray
+    mean_att_mps: np.ndarray
+    var_att_m2ps2: np.ndarray
+
+    def z(self) -> np.ndarray:
+        """The remainder standardised by the model, (U,)."""
+        return (self.r_mps - self.mean_mps) / np.sqrt(self.var_m2ps2)
+
+    def z_att(self) -> np.ndarray:
+        """The attitude-product part standardised by the model, (U,)."""
+        return (self.r_att_mps - self.mean_att_mps) / np.sqrt(self.var_att_m2ps2)
+
+
+@dataclass(frozen=True)
+class WindowPersistence:
+    """The remainder over one time window, over runs.
+
+    ``z2`` and ``z2_att``: mean squared standardised remainder (1 when the model's
+    variance is right); ``rho`` and ``rho_att``: median over runs of the lag-1
+    correlation of consecutive updates; ``count`` and ``count_att``: ``(1 + rho) /
+    (1 - rho)`` at that median (1 for ``rho <= 0``), the updates one value counts for.
+    """
+
+    t0_s: float
+    t1_s: float
+    updates: int
+    z2: float
+    z2_att: float
+    rho: float
+    rho_att: float
+    count: float
+    count_att: float
+
+
+def rotvec_between(q_true: np.ndarray, q_est: np.ndarray) -> np.ndarray:
+    """NED rotation vector ``dtheta`` with ``q_true = exp(dtheta) q_est`` (rad, (3,))."""
+    d = quat_multiply(q_true, quat_conjugate(q_est))
+    return quat_to_rotvec(-d if d[0] < 0.0 else d)
+
+
+def realized_remainder(
+    rec: SideslipRecord, q_true_nb: np.ndarray, vel_true_ned_mps: np.ndarray
+) -> tuple[float, float]:
+    """The remainder a sideslip update left, and its attitude-product part (m/s).
+
+    ``r`` is the true body-lateral velocity minus the update's linear prediction of
+    it from the true errors; ``r_att = dtheta^T A dtheta / 2`` with ``a = C e_y`` and
+    ``A = (a v^T + v a^T) / 2 - (a . v) I`` at the nominal state (the quadratic form
+    :meth:`filters.ekf.NavFilter.body_velocity_second_order` takes the moments of).
+    """
+    dth = rotvec_between(q_true_nb, rec.q_nb)
+    dv = np.asarray(vel_true_ned_mps, dtype=float) - rec.vel_ned_mps
+    true_lat = float(dcm_from_quat(q_true_nb)[:, 1] @ vel_true_ned_mps)
+    r = true_lat - (rec.v_lat_mps + float(rec.h_vel @ dv) + float(rec.h_att @ dth))
+    a = dcm_from_quat(rec.q_nb)[:, 1]
+    v = rec.vel_ned_mps
+    m = 0.5 * (np.outer(a, v) + np.outer(v, a)) - float(a @ v) * np.eye(3)
+    return r, 0.5 * float(dth @ m @ dth)
+
+
+def realized_remainders(records: list[SideslipRecord], truth: FlightTruth) -> RealizedRemainders:
+    """:func:`realized_remainder` at every update, the truth taken at the update's time.
+
+    Raises
+    ------
+    ValueError
+        If an update's time is not a truth sample time (within 1e-6 s).
+    """
+    if not records:
+        raise ValueError("no sideslip updates recorded (is filter.sideslip_sigma_deg > 0?)")
+    t = np.array([r.t_s for r in records])
+    k = np.clip(np.searchsorted(truth.t_s, t), 1, truth.t_s.shape[0] - 1)
+    k -= (t - truth.t_s[k - 1]) < (truth.t_s[k] - t)
+    off = np.abs(truth.t_s[k] - t).max()
+    if off > 1e-6:
+        raise ValueError(f"sideslip updates fall between truth samples (by up to {off:.2e} s)")
+    rr = np.array(
+        [
+            realized_remainder(rec, truth.q_nb[j], truth.vel_ned_mps[j])
+            for rec, j in zip(records, k.tolist(), strict=True)
+        ]
+    )
+    rem = np.array([rec.remainder for rec in records])  # mean, var, var_att, mean_att
+    return RealizedRemainders(t, rr[:, 0], rr[:, 1], rem[:, 0], rem[:, 1], rem[:, 3], rem[:, 2])
+
+
+def lag1_correlation(x: np.ndarray) -> float:
+    """Correlation of consecutive values of ``x`` (NaN for fewer than 3 values)."""
+    x = np.asarray(x, dtype=float)
+    if x.shape[0] < 3:
+        return float("nan")
+    a, b = x[:-1] - x[:-1].mean(), x[1:] - x[1:].mean()
+    den = float(np.sqrt((a @ a) * (b @ b)))
+    return float(a @ b) / den if den > 0 else float("nan")
+
+
+def updates_per_value(rho: float) -> float:
+    """Integrated autocorrelation ``(1 + rho) / (1 - rho)`` of an AR(1) sequence.
+
+    1 for ``rho <= 0`` (no persistence to count); ``rho`` is clipped to
+    :data:`RHO_MAX`. NaN stays NaN.
+    """
+    if not np.isfinite(rho):
+        return float("nan")
+    rho = min(float(rho), RHO_MAX)
+    return 1.0 if rho <= 0.0 else (1.0 + rho) / (1.0 - rho)
+
+
+def window_persistence(
+    runs: list[RealizedRemainders], edges_s: np.ndarray
+) -> list[WindowPersistence]:
+    """Each window's :class:`WindowPersistence` over the runs (windows ``[e_i, e_i+1)``)."""
+    out = []
+    for t0, t1 in zip(edges_s[:-1].tolist(), edges_s[1:].tolist(), strict=True):
+        z2, z2a, rho, rho_a, n = [], [], [], [], 0
+        for run in runs:
+            m = (run.t_s >= t0) & (run.t_s < t1)
+            if not m.any():
+                continue
+            z, za = run.z()[m], run.z_att()[m]
+            n += int(m.sum())
+            z2.append(z * z)
+            z2a.append(za * za)
+            rho.append(lag1_correlation(z))
+            rho_a.append(lag1_correlation(za))
+        if n == 0:
+            continue
+        r, ra = float(np.nanmedian(rho)), float(np.nanmedian(rho_a))
+        out.append(
+            WindowPersistence(
+                t0,
+                t1,
+                n,
+                float(np.mean(np.concatenate(z2))),
+                float(np.mean(np.concatenate(z2a))),
+                r,
+                ra,
+                updates_per_value(r),
+                updates_per_value(ra),
+            )
+        )
+    return out
+
+
+def _one_run(scn: FlightScenario, i: int) -> RealizedRemainders | str:
+    from ngnav.simulate import simulate_flight
+
+    sim = simulate_flight(scn, i)
+    log: list[SideslipRecord] = []
+    try:
+        run_filter(sim.samples, sim.fixes, sim.config, sideslip_log=log)
+    except CovarianceError as exc:
+        return f"run {i} diverged and is left out: {exc}"
+    return realized_remainders(log, sim.truth)
+
+
+def remainder_study(
+    scn: FlightScenario, runs: int, window_s: float, workers: int = 2, progress: bool = False
+) -> dict:
+    """Measure the sideslip remainder's size and persistence over ``runs`` flights.
+
+    Runs use ``default_rng([seed, i])`` (:func:`ngnav.simulate.simulate_flight`) and
+    execute with dask's process scheduler (``workers`` processes; 1: in this
+    process). Returns the counts the filter used, the windows
+    (:func:`window_persistence` over ``window_s`` seconds, as dicts) and the same
+    over the whole flight, and the runs left out (diverged).
+    """
+    import dask
+    from tqdm import tqdm
+
+    if runs < 1:
+        raise ValueError(f"runs must be at least 1, got {runs}")
+    if not (np.isfinite(window_s) and window_s > 0):
+        raise ValueError(f"window must be a positive number of seconds, got {window_s}")
+    if scn.filter.sideslip_sigma_deg <= 0:
+        raise ValueError(
+            f"scenario {scn.name!r} has no sideslip model (filter.sideslip_sigma_deg = 0)"
+        )
+    results: list[RealizedRemainders | str] = []
+    bar = tqdm(total=runs, desc="remainder", disable=not progress, unit="run")
+    chunk = max(1, workers)
+    for start in range(0, runs, chunk):
+        tasks = [dask.delayed(_one_run)(scn, i) for i in range(start, min(runs, start + chunk))]
+        sched = (
+            {"scheduler": "processes", "num_workers": workers}
+            if workers > 1
+            else {"scheduler": "synchronous"}
+        )
+        results += dask.compute(*tasks, **sched)
+        bar.update(len(tasks))
+    bar.close()
+    left_out = [r for r in results if isinstance(r, str)]
+    done = [r for r in results if not isinstance(r, str)]
+    if not done:
+        raise RuntimeError(f"every run diverged: {left_out}")
+    t_end = max(float(r.t_s[-1]) for r in done)
+    edges = np.arange(0.0, t_end + window_s, window_s)
+    whole = window_persistence(done, np.array([0.0, t_end + 1.0]))[0]
+    return {
+        "scenario": scn.name,
+        "runs": len(done),
+        "remainder_updates": scn.filter.remainder_updates,
+        "attitude_remainder_updates": scn.filter.attitude_remainder_updates,
+        "whole": whole.__dict__,
+        "windows": [w.__dict__ for w in window_persistence(done, edges)],
+        "left_out": left_out,
+    }

@@ -1,0 +1,245 @@
+"""The sideslip remainder measured against a truth (``ngnav remainder``)."""
+
+import itertools
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from filters.ekf import SIDESLIP_REMAINDER_UPDATES, remainder_variance
+from filters.pipeline import run_filter
+from filters.remainder_study import (
+    RHO_MAX,
+    RealizedRemainders,
+    realized_remainder,
+    realized_remainders,
+    rotvec_between,
+    updates_per_value,
+    window_persistence,
+)
+from ngnav.flight import FlightTruth
+from ngnav.flight_scenario import load_flight
+from ngnav.rotation import dcm_from_quat, quat_from_rotvec, quat_multiply
+from ngnav.runconfig import FilterSettings
+from ngnav.simulate import simulate_flight
+from tests.helpers import level_filter
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _one_update(slip_mps: float = 0.0):
+    """A filter at a banked, climbing nominal state (20 m/s along the body x axis plus
+    ``slip_mps`` along its y axis), after one logged sideslip update."""
+    nf, _, _ = level_filter()
+    nf.q = quat_from_rotvec(np.array([0.3, -0.1, 2.0]))
+    c = dcm_from_quat(nf.q)
+    nf.vel = 20.0 * c[:, 0] + slip_mps * c[:, 1]
+    q0, v0 = nf.q.copy(), nf.vel.copy()
+    nf.sideslip_log = []
+    nf.update_sideslip(np.deg2rad(0.01), 5.0)
+    (rec,) = nf.sideslip_log
+    return nf, rec, q0, v0
+
+
+def test_the_log_holds_the_state_the_update_linearised_at():
+    nf, rec, q0, v0 = _one_update()
+    np.testing.assert_array_equal(rec.q_nb, q0)
+    np.testing.assert_array_equal(rec.vel_ned_mps, v0)
+    v_lat, h = nf.body_velocity_model(q0, v0)
+    assert rec.v_lat_mps == v_lat
+    np.testing.assert_array_equal(rec.h_att, h[0, 6:9])
+    np.testing.assert_array_equal(rec.h_vel, h[0, 3:6])
+    assert rec.accepted and nf.counters.sideslip_used == 1
+    assert not np.array_equal(nf.q, q0)  # the update moved the state after the record
+    # a rejected update is recorded too
+    nf, rec, _, _ = _one_update(slip_mps=1.0)
+    assert not rec.accepted and nf.counters.sideslip_rejected == 1
+
+
+def test_realized_remainder_is_the_rotations_second_order_term():
+    """Against the exponential map's expansion, written with cross products.
+
+    With ``a = C e_y`` the true lateral velocity is ``(exp([dtheta]x) a) . (v + dv)``
+    and ``exp([dtheta]x) a = a + dtheta x a + dtheta x (dtheta x a) / 2 + O(3)``: the
+    terms beyond the linear ones are ``(dtheta x a) . dv + (dtheta x (dtheta x a)) .
+    v / 2``, the last one the attitude-product part. What is left must shrink as the
+    third power of the error's size.
+    """
+    _, rec, q0, v0 = _one_update()
+    a = dcm_from_quat(q0)[:, 1]
+    dth0 = np.array([0.02, -0.03, 0.025])
+    dv0 = np.array([0.4, -0.3, 0.2])
+    left = []
+    for eps in (1.0, 0.5, 0.25):
+        dth, dv = eps * dth0, eps * dv0
+        q_true = quat_multiply(quat_from_rotvec(dth), q0)
+        np.testing.assert_allclose(rotvec_between(q_true, q0), dth, atol=1e-14)
+        np.testing.assert_allclose(rotvec_between(-q_true, q0), dth, atol=1e-14)
+        r, r_att = realized_remainder(rec, q_true, v0 + dv)
+        second_att = 0.5 * np.cross(dth, np.cross(dth, a)) @ v0
+        second = np.cross(dth, a) @ dv + second_att
+        assert r_att == pytest.approx(second_att, rel=1e-12)
+        assert abs(second) > 1e-4 * eps**2  # the term is exercised
+        left.append(abs(r - second))
+    assert left[-1] < 0.05 * abs(second)  # third order is small at the smallest size
+    for big, small in itertools.pairwise(left):
+        assert 6.0 < big / small < 10.0  # halving the error divides it by 8
+
+
+def _truth(t_s: np.ndarray, q_nb: np.ndarray, vel: np.ndarray) -> FlightTruth:
+    n = t_s.shape[0]
+    z = np.zeros((n, 3))
+    return FlightTruth(t_s, z, vel, q_nb, z, z, z)
+
+
+def test_each_update_meets_the_truth_at_its_own_time():
+    _, rec, q0, v0 = _one_update()
+    t = np.arange(5) * 0.01
+    q = np.tile(q0, (5, 1))
+    v = np.tile(v0, (5, 1))
+    v[2] += [0.0, 1.0, 0.0]  # only sample 2 differs
+    recs = [rec._replace(t_s=0.02), rec._replace(t_s=0.03)]
+    got = realized_remainders(recs, _truth(t, q, v))
+    expect2 = realized_remainder(rec, q0, v[2])[0]
+    expect3 = realized_remainder(rec, q0, v0)[0]
+    assert got.r_mps.tolist() == [expect2, expect3]
+    assert expect2 != expect3
+    np.testing.assert_array_equal(got.var_att_m2ps2, [rec.remainder.var_att] * 2)
+    np.testing.assert_array_equal(got.mean_att_mps, [rec.remainder.mean_att] * 2)
+    with pytest.raises(ValueError, match="fall between truth samples"):
+        realized_remainders([rec._replace(t_s=0.015)], _truth(t, q, v))
+    with pytest.raises(ValueError, match="no sideslip updates recorded"):
+        realized_remainders([], _truth(t, q, v))
+
+
+def test_updates_per_value():
+    assert updates_per_value(0.6) == pytest.approx(4.0)
+    assert updates_per_value(0.0) == 1.0
+    assert updates_per_value(-0.3) == 1.0
+    assert updates_per_value(1.0) == pytest.approx((1 + RHO_MAX) / (1 - RHO_MAX))
+    assert np.isnan(updates_per_value(float("nan")))
+
+
+def _ar1(rng, rho: float, n: int) -> np.ndarray:
+    x = np.empty(n)
+    x[0] = rng.normal()
+    e = rng.normal(size=n) * np.sqrt(1.0 - rho * rho)
+    for k in range(1, n):
+        x[k] = rho * x[k - 1] + e[k]
+    return x
+
+
+def test_window_persistence_recovers_known_ar1_sequences():
+    """Unit-variance AR(1) remainders (rho 0.6, and 0.9 for the attitude part) drawn
+    about the model's mean with the model's variance: z^2 must be 1 and the counts 4
+    and 19, within the sampling spread of 40 runs of 500 updates.
+
+    z^2's standard error: z^2 has variance 2 and correlation rho^(2k), so the mean of
+    N values has variance 2 (1 + rho^2) / (1 - rho^2) / N (0.015 for rho 0.6). A run's
+    lag-1 estimate has sd sqrt((1 - rho^2) / n) (0.036) and a bias of about
+    -(1 + 3 rho) / n (-0.006); the median of 40 has about 1.25 sd / sqrt(40) (0.007).
+    """
+    rng = np.random.default_rng(2026)
+    runs, n = 40, 500
+    t = np.arange(n) * 0.2
+    out = []
+    for _ in range(runs):
+        mean, sd = rng.normal(size=n) * 1e-3, np.exp(rng.normal(size=n)) * 1e-3
+        mean_a, sd_a = rng.normal(size=n) * 1e-3, np.exp(rng.normal(size=n)) * 1e-3
+        out.append(
+            RealizedRemainders(
+                t,
+                mean + sd * _ar1(rng, 0.6, n),
+                mean_a + sd_a * _ar1(rng, 0.9, n),
+                mean,
+                sd * sd,
+                mean_a,
+                sd_a * sd_a,
+            )
+        )
+    (w,) = window_persistence(out, np.array([0.0, 200.0]))
+    assert w.updates == runs * n
+    se = np.sqrt(2.0 * (1 + 0.36) / (1 - 0.36) / (runs * n))
+    assert abs(w.z2 - 1.0) < 4.0 * se
+    se_a = np.sqrt(2.0 * (1 + 0.81) / (1 - 0.81) / (runs * n))
+    assert abs(w.z2_att - 1.0) < 4.0 * se_a
+    assert abs(w.rho - 0.6) < 0.04
+    assert abs(w.rho_att - 0.9) < 0.03
+    assert 3.5 < w.count < 4.5
+    assert 15.0 < w.count_att < 24.0
+    # windows split the updates; an empty window is left out
+    ws = window_persistence(out, np.array([0.0, 50.0, 100.0, 300.0, 400.0]))
+    assert [x.updates for x in ws] == [runs * 250, runs * 250]
+
+
+def test_remainder_counts_are_settings_that_reach_the_update():
+    """``filter.remainder_updates`` and ``filter.attitude_remainder_updates`` set the
+    R of every sideslip update (``sigma^2 + remainder_variance``), checked on the
+    first update of a short run, where both runs are still in the same state."""
+    with pytest.raises(ValueError, match=r"filter\.remainder_updates must be a number in"):
+        FilterSettings(remainder_updates=0.5)
+    with pytest.raises(ValueError, match=r"filter\.attitude_remainder_updates must be"):
+        FilterSettings(attitude_remainder_updates=float("nan"))
+    firsts = {}
+    for n_att in (40.0, 7.0):
+        scn = load_flight(
+            "tactical", ["run.rate_hz=200", f"filter.attitude_remainder_updates={n_att}"]
+        )
+        sim = simulate_flight(scn, 0)
+        log = []
+        run_filter(sim.samples, sim.fixes, sim.config, sideslip_log=log)
+        firsts[n_att] = log[0]
+    a, b = firsts[40.0], firsts[7.0]
+    assert a.t_s == b.t_s and a.remainder == b.remainder
+    speed = np.hypot(*a.vel_ned_mps[:2])
+    sigma2 = (speed * np.tan(np.deg2rad(scn.filter.sideslip_sigma_deg))) ** 2
+    for n_att, rec in firsts.items():
+        expect = sigma2 + remainder_variance(rec.remainder, SIDESLIP_REMAINDER_UPDATES, n_att)
+        assert rec.r_m2ps2 == pytest.approx(expect, rel=1e-12)
+    assert a.r_m2ps2 > 1.5 * b.r_m2ps2  # the attitude part's count matters here
+
+
+def test_remainder_cli(tmp_path):
+    """``ngnav remainder`` as a real subprocess on two short tactical runs."""
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ngnav.cli",
+            "remainder",
+            "--scenario",
+            "tactical",
+            "--set",
+            "run.rate_hz=200",
+            "--runs",
+            "2",
+            "--window",
+            "30",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert out["runs"] == 2 and out["left_out"] == []
+    assert (out["remainder_updates"], out["attitude_remainder_updates"]) == (4.0, 40.0)
+    assert [(w["t0_s"], w["t1_s"]) for w in out["windows"]] == [(0.0, 30.0), (30.0, 60.0)]
+    whole = out["whole"]
+    assert whole["updates"] == sum(w["updates"] for w in out["windows"])
+    # 5 Hz over two flights of about 60 s each
+    assert 500 < whole["updates"] <= 2 * 5 * 62
+    bad = subprocess.run(
+        [sys.executable, "-m", "ngnav.cli", "remainder", "--scenario", "static", "--runs", "1"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+    )
+    assert bad.returncode == 2
+    assert "has no sideslip model" in bad.stderr
