@@ -20,7 +20,10 @@ model's mean and variance, ``z = (r - mean) / sqrt(var)``, a model that describe
 the remainder gives ``E z^2 = 1``; the lag-1 correlation ``rho`` of ``z`` over
 consecutive updates gives, for an AR(1) sequence, the integrated autocorrelation
 ``(1 + rho) / (1 - rho)``: the number of updates one value counts for, which is
-what the count in R stands for.
+what the count in R stands for. A remainder with a slow part beside a fast one
+lasts longer than its lag-1 correlation says, so the integrated autocorrelation
+``tau = 1 + 2 sum_k rho_k`` is also summed directly (:func:`integrated_autocorrelation`,
+Sokal's window).
 """
 
 from __future__ import annotations
@@ -80,7 +83,9 @@ class WindowPersistence:
     ``z2`` and ``z2_att``: mean squared standardised remainder (1 when the model's
     variance is right); ``rho`` and ``rho_att``: median over runs of the lag-1
     correlation of consecutive updates; ``count`` and ``count_att``: ``(1 + rho) /
-    (1 - rho)`` at that median (1 for ``rho <= 0``), the updates one value counts for.
+    (1 - rho)`` at that median (1 for ``rho <= 0``), the updates one value counts for;
+    ``tau`` and ``tau_att``: the same counted without the AR(1) assumption
+    (:func:`integrated_autocorrelation` of the runs' standardised remainders pooled).
     """
 
     t0_s: float
@@ -92,6 +97,8 @@ class WindowPersistence:
     rho_att: float
     count: float
     count_att: float
+    tau: float
+    tau_att: float
 
 
 def rotvec_between(q_true: np.ndarray, q_est: np.ndarray) -> np.ndarray:
@@ -168,13 +175,49 @@ def updates_per_value(rho: float) -> float:
     return 1.0 if rho <= 0.0 else (1.0 + rho) / (1.0 - rho)
 
 
+def integrated_autocorrelation(series: list[np.ndarray], c: float = 5.0) -> float:
+    """Integrated autocorrelation ``tau = 1 + 2 sum_{k=1..M} rho_k`` of runs of one process.
+
+    ``rho_k`` pools every run's lag-``k`` products about the pooled mean (runs are
+    not joined end to end); the window ``M`` is the smallest with ``M >= c tau(M)``
+    (Sokal's automatic window, c = 5: the sum stops where noise would dominate it).
+    When no lag satisfies it the sum over every lag is returned, a lower bound.
+    NaN for fewer than 3 values in all or no spread.
+
+    Parameters
+    ----------
+    series : list of arrays (n_i,)
+        One sequence per run, consecutive in time.
+    c : float
+        The window's factor.
+    """
+    xs = [np.asarray(x, dtype=float) for x in series if np.asarray(x).shape[0] > 0]
+    n = sum(x.shape[0] for x in xs)
+    if n < 3:
+        return float("nan")
+    m = np.concatenate(xs).mean()
+    xs = [x - m for x in xs]
+    c0 = sum(float(x @ x) for x in xs) / n
+    if c0 <= 0.0:
+        return float("nan")
+    k_max = max(x.shape[0] for x in xs) - 1
+    tau = 1.0
+    for k in range(1, k_max + 1):
+        pairs = [(x[:-k], x[k:]) for x in xs if x.shape[0] > k]
+        nk = sum(a.shape[0] for a, _ in pairs)
+        tau += 2.0 * sum(float(a @ b) for a, b in pairs) / nk / c0
+        if k >= c * tau:
+            break
+    return max(tau, 1.0)
+
+
 def window_persistence(
     runs: list[RealizedRemainders], edges_s: np.ndarray
 ) -> list[WindowPersistence]:
     """Each window's :class:`WindowPersistence` over the runs (windows ``[e_i, e_i+1)``)."""
     out = []
     for t0, t1 in zip(edges_s[:-1].tolist(), edges_s[1:].tolist(), strict=True):
-        z2, z2a, rho, rho_a, n = [], [], [], [], 0
+        z2, z2a, rho, rho_a, zs, zas, n = [], [], [], [], [], [], 0
         for run in runs:
             m = (run.t_s >= t0) & (run.t_s < t1)
             if not m.any():
@@ -185,6 +228,8 @@ def window_persistence(
             z2a.append(za * za)
             rho.append(lag1_correlation(z))
             rho_a.append(lag1_correlation(za))
+            zs.append(z)
+            zas.append(za)
         if n == 0:
             continue
         r, ra = float(np.nanmedian(rho)), float(np.nanmedian(rho_a))
@@ -199,6 +244,8 @@ def window_persistence(
                 ra,
                 updates_per_value(r),
                 updates_per_value(ra),
+                integrated_autocorrelation(zs),
+                integrated_autocorrelation(zas),
             )
         )
     return out

@@ -14,6 +14,7 @@ from filters.pipeline import run_filter
 from filters.remainder_study import (
     RHO_MAX,
     RealizedRemainders,
+    integrated_autocorrelation,
     realized_remainder,
     realized_remainders,
     rotvec_between,
@@ -170,9 +171,28 @@ def test_window_persistence_recovers_known_ar1_sequences():
     assert abs(w.rho_att - 0.9) < 0.03
     assert 3.5 < w.count < 4.5
     assert 15.0 < w.count_att < 24.0
+    assert 3.0 < w.tau < 5.0
+    assert 13.0 < w.tau_att < 25.0
     # windows split the updates; an empty window is left out
     ws = window_persistence(out, np.array([0.0, 50.0, 100.0, 300.0, 400.0]))
     assert [x.updates for x in ws] == [runs * 250, runs * 250]
+
+
+def test_integrated_autocorrelation_sees_a_slow_part_the_lag1_correlation_misses():
+    """Half the variance an AR(1) at 0.3, half at 0.95: tau = 0.5 (1.3 / 0.7) + 0.5
+    (1.95 / 0.05) = 20.4 updates, while the lag-1 correlation (0.625) says 4.3 as an
+    AR(1). 40 runs of 2000; Sokal's estimate has a standard deviation of about
+    tau sqrt(2 (2 M + 1) / N) (1.5 here, M about 100)."""
+    rng = np.random.default_rng(5)
+    runs = [np.sqrt(0.5) * (_ar1(rng, 0.3, 2000) + _ar1(rng, 0.95, 2000)) for _ in range(40)]
+    tau = integrated_autocorrelation(runs)
+    assert abs(tau - 20.4) < 5.0
+    rho = float(np.median([np.corrcoef(x[1:], x[:-1])[0, 1] for x in runs]))
+    assert updates_per_value(rho) < 6.0  # the AR(1) reading misses the slow part
+    # white noise: 1; too short or without spread: NaN
+    assert abs(integrated_autocorrelation([rng.normal(size=5000)]) - 1.0) < 0.2
+    assert np.isnan(integrated_autocorrelation([np.ones(2)]))
+    assert np.isnan(integrated_autocorrelation([np.ones(10)]))
 
 
 def test_remainder_counts_are_settings_that_reach_the_update():
