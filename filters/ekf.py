@@ -66,8 +66,10 @@ SIDESLIP_REMAINDER_UPDATES = 4.0
 #: That part multiplies two attitude errors the constraint cannot see (for the sideslip
 #: model: the rotation about the constraint axis, the pitch, times the roll about the
 #: velocity), so no update shrinks it and it lasts as long as the tilt errors do: 40 is
-#: the remainder's integrated autocorrelation measured on ``uav-survey`` (38-41 updates,
-#: README "the sideslip remainder"). Counted like the rest (4) it turned a hand-over's
+#: the remainder's integrated autocorrelation measured on ``uav-survey``'s outage (38-41
+#: updates, README "the sideslip remainder"; ``ngnav remainder`` measures it on any
+#: flight). Both counts are the defaults of ``filter.remainder_updates`` and
+#: ``filter.attitude_remainder_updates``. Counted like the rest (4) it turned a hand-over's
 #: 1 deg roll and pitch errors into a pitch and angle of attack 2-3 times surer than
 #: their errors (``tactical``, 16 runs, 2-4 s: attitude NEES 7.3, angle of attack 6.1).
 ATTITUDE_REMAINDER_UPDATES = 40.0
