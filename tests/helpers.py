@@ -1,10 +1,17 @@
 """Shared test helpers."""
 
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 
 from filters.ekf import FilterNoise, NavFilter
 from ngnav.frontend import ArraySolver
 from ngnav.layout import ArrayLayout, nine_accelerometer_cube
+
+#: The repository's root (where ``python -m ngnav.cli`` runs).
+ROOT = Path(__file__).resolve().parents[1]
 
 #: The three cross products of the rate (wy wz, wx wz, wx wy) as index pairs.
 PAIRS = np.array([[1, 2], [0, 2], [0, 1]])
@@ -43,3 +50,20 @@ def level_filter(
     )
     initialise_level(nf)
     return nf, layout, solver
+
+
+def run_cli(*args: str, check: bool = True, timeout: float = 600.0) -> subprocess.CompletedProcess:
+    """``python -m ngnav.cli ARGS`` as a real subprocess from the repository root.
+
+    With ``check`` a non-zero exit raises AssertionError carrying its stderr.
+    """
+    proc = subprocess.run(
+        [sys.executable, "-m", "ngnav.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=timeout,
+    )
+    if check and proc.returncode != 0:
+        raise AssertionError(proc.stderr)
+    return proc

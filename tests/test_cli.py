@@ -1,19 +1,14 @@
 """The CLI as a real subprocess, and the paper-reproduction targets."""
 
 import json
-import subprocess
-import sys
 
 import pytest
 
+from tests.helpers import run_cli
+
 
 def run(*args, check=True):
-    proc = subprocess.run(
-        [sys.executable, "-m", "ngnav.cli", *args], capture_output=True, text=True, timeout=600
-    )
-    if check and proc.returncode != 0:
-        raise AssertionError(proc.stderr)
-    return proc
+    return run_cli(*args, check=check)
 
 
 @pytest.fixture(scope="module")

@@ -2,9 +2,6 @@
 
 import itertools
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,9 +23,7 @@ from ngnav.flight_scenario import load_flight
 from ngnav.rotation import dcm_from_quat, quat_from_rotvec, quat_multiply
 from ngnav.runconfig import FilterSettings
 from ngnav.simulate import simulate_flight
-from tests.helpers import level_filter
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.helpers import level_filter, run_cli
 
 
 def _one_update(slip_mps: float = 0.0):
@@ -222,30 +217,20 @@ def test_remainder_counts_are_settings_that_reach_the_update():
     assert a.r_m2ps2 > 1.5 * b.r_m2ps2  # the attitude part's count matters here
 
 
-def test_remainder_cli(tmp_path):
+def test_remainder_cli():
     """``ngnav remainder`` as a real subprocess on two short tactical runs."""
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "ngnav.cli",
-            "remainder",
-            "--scenario",
-            "tactical",
-            "--set",
-            "run.rate_hz=200",
-            "--runs",
-            "2",
-            "--window",
-            "30",
-            "--json",
-        ],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        timeout=600,
+    proc = run_cli(
+        "remainder",
+        "--scenario",
+        "tactical",
+        "--set",
+        "run.rate_hz=200",
+        "--runs",
+        "2",
+        "--window",
+        "30",
+        "--json",
     )
-    assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout)
     assert out["runs"] == 2 and out["left_out"] == []
     assert (out["remainder_updates"], out["attitude_remainder_updates"]) == (4.0, 40.0)
@@ -254,12 +239,6 @@ def test_remainder_cli(tmp_path):
     assert whole["updates"] == sum(w["updates"] for w in out["windows"])
     # 5 Hz over two flights of about 60 s each
     assert 500 < whole["updates"] <= 2 * 5 * 62
-    bad = subprocess.run(
-        [sys.executable, "-m", "ngnav.cli", "remainder", "--scenario", "static", "--runs", "1"],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        timeout=120,
-    )
+    bad = run_cli("remainder", "--scenario", "static", "--runs", "1", check=False)
     assert bad.returncode == 2
     assert "has no sideslip model" in bad.stderr

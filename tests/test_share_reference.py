@@ -1,8 +1,6 @@
 """The consistent filter's share inside the bounds, against its exact limits."""
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -10,6 +8,7 @@ from scipy.stats import binom
 
 from filters.evaluate import chi2_bounds
 from filters.share_reference import consistent_share, statistic_autocorrelation
+from tests.helpers import run_cli
 
 
 def test_independent_epochs_give_the_binomial_share():
@@ -94,28 +93,19 @@ def test_autocorrelation_leaves_out_missing_epochs_and_rejects_bad_shapes():
 def test_cli_prints_the_reference_beside_each_block():
     """``ngnav consistency --reference`` as a real subprocess: every block carries
     the consistent filter's share, a median at or above its 5th percentile."""
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "ngnav.cli",
-            "consistency",
-            "--scenario",
-            "tactical",
-            "--set",
-            "run.rate_hz=200",
-            "--runs",
-            "2",
-            "--workers",
-            "1",
-            "--reference",
-            "--json",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
+    proc = run_cli(
+        "consistency",
+        "--scenario",
+        "tactical",
+        "--set",
+        "run.rate_hz=200",
+        "--runs",
+        "2",
+        "--workers",
+        "1",
+        "--reference",
+        "--json",
     )
-    assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout)
     for name, b in out["blocks"].items():
         ref = b["consistent_share"]
