@@ -114,7 +114,7 @@ _DTHETA_DV = np.r_[ATT, VEL]
 _DTHETA_DV_IX = np.ix_(_DTHETA_DV, _DTHETA_DV)
 
 
-def _constraint_axes(axis: int, aoa_rad: float) -> tuple[np.ndarray, np.ndarray]:
+def constraint_axes(axis: int, aoa_rad: float) -> tuple[np.ndarray, np.ndarray]:
     """Constraint axis ``n_b`` and the wind x axis ``t_b`` (FRD) at angle of attack ``aoa_rad``.
 
     :data:`LATERAL`: ``n_b = e_y``; :data:`VERTICAL`: ``n_b = [-sin a, 0, cos a]``.
@@ -142,8 +142,8 @@ class Remainder(NamedTuple):
     mean_att: float = 0.0
 
 
-class SideslipRecord(NamedTuple):
-    """One zero-sideslip update as the filter made it (``NavFilter.sideslip_log``).
+class BodyVelocityRecord(NamedTuple):
+    """One vehicle-model update as the filter made it (``NavFilter.body_velocity_log``).
 
     The nominal state it linearised at, the model's value and Jacobian there, and
     the second-order remainder the update assumed: what
@@ -154,14 +154,21 @@ class SideslipRecord(NamedTuple):
     ----------
     t_s : float
         Filter time, s.
+    axis : int
+        :data:`LATERAL` (the sideslip model) or :data:`VERTICAL` (the angle of attack's).
     q_nb : array (4,)
         Nominal attitude, body (FRD) to NED, Hamilton scalar first.
     vel_ned_mps : array (3,)
         Nominal velocity, NED, m/s.
-    v_lat_mps : float
-        The model's body-lateral velocity at the nominal state, m/s.
+    aoa_rad : float
+        The nominal angle of attack the vertical axis was taken at (0 for the lateral), rad.
+    v_axis_mps : float
+        The model's velocity along its constraint axis at the nominal state, m/s.
     h_att, h_vel : arrays (3,)
         Its Jacobian on the NED attitude error (m/s per rad) and on the velocity error.
+    dv_daoa_mps : float
+        Its change per radian of angle of attack, ``-(C t_b) . v`` (0 for the lateral),
+        m/s per rad.
     remainder : Remainder
         The second-order remainder's mean and variances at the update.
     r_m2ps2 : float
@@ -171,11 +178,14 @@ class SideslipRecord(NamedTuple):
     """
 
     t_s: float
+    axis: int
     q_nb: np.ndarray
     vel_ned_mps: np.ndarray
-    v_lat_mps: float
+    aoa_rad: float
+    v_axis_mps: float
     h_att: np.ndarray
     h_vel: np.ndarray
+    dv_daoa_mps: float
     remainder: Remainder
     r_m2ps2: float
     accepted: bool
@@ -390,9 +400,9 @@ class NavFilter:
 
     Attributes
     ----------
-    sideslip_log : list of SideslipRecord or None
-        Set to a list to have every zero-sideslip update recorded in it (None, the
-        default, records nothing).
+    body_velocity_log : list of BodyVelocityRecord or None
+        Set to a list to have every sideslip and angle-of-attack update recorded in it
+        (None, the default, records nothing).
     """
 
     noise: FilterNoise
@@ -417,7 +427,7 @@ class NavFilter:
             v = getattr(self, name)
             if not (np.isfinite(v) and 1.0 <= v <= 1e4):
                 raise ValueError(f"{name} must be a number in [1, 10000], got {v}")
-        self.sideslip_log: list[SideslipRecord] | None = None
+        self.body_velocity_log: list[BodyVelocityRecord] | None = None
         self.quad_pairs = np.asarray(self.quad_pairs, dtype=int).reshape(-1, 2)
         self.antenna_b_m = np.asarray(self.antenna_b_m, dtype=float).reshape(3)
         n_dr = 0
@@ -1173,7 +1183,7 @@ class NavFilter:
         times :meth:`aoa_jacobian`.
         """
         c = dcm_from_quat(q_nb)
-        n_b, t_b = _constraint_axes(axis, aoa_rad)
+        n_b, t_b = constraint_axes(axis, aoa_rad)
         row = c @ n_b  # n_b^T C^T as a NED row
         h = np.zeros((1, self.layout.n))
         h[0, VEL] = row
@@ -1232,21 +1242,21 @@ class NavFilter:
         if blend_var > 0.0:
             # the blend beyond its linear term moves the angle, and the wind-normal
             # velocity by -(C t_b . v) per radian (body_velocity_model)
-            _, t_b = _constraint_axes(VERTICAL, self.aoa)
+            _, t_b = constraint_axes(VERTICAL, self.aoa)
             dv_da = float((dcm_from_quat(self.q) @ t_b) @ self.vel)
             lift = self._unblended_aoa()
             var += dv_da * dv_da * lift * lift * blend_var
         r = np.array([[var]])
-        log = self.sideslip_log if axis == LATERAL else None
+        log = self.body_velocity_log
         if log is not None:
-            t_s, q_nb, vel = self.t_s, self.q.copy(), self.vel.copy()
+            aoa = self.aoa if axis == VERTICAL else 0.0
+            _, t_b = constraint_axes(axis, aoa)
+            dv_da = -float((dcm_from_quat(self.q) @ t_b) @ self.vel) if axis == VERTICAL else 0.0
+            rec = (self.t_s, axis, self.q.copy(), self.vel.copy(), aoa, v_axis)
+            rec += (h[0, ATT].copy(), h[0, VEL].copy(), dv_da, rem, float(var))
         nis, ok = self._gated_update(np.array([-(v_axis + rem.mean)]), r, h, self.gate1)
         if log is not None:
-            log.append(
-                SideslipRecord(
-                    t_s, q_nb, vel, v_axis, h[0, ATT].copy(), h[0, VEL].copy(), rem, float(var), ok
-                )
-            )
+            log.append(BodyVelocityRecord(*rec, ok))
         return nis, ok
 
     def sideslip_second_order(self) -> Remainder:
@@ -1273,7 +1283,7 @@ class NavFilter:
         ``var_att`` is ``Var`` of the ``dtheta^T A dtheta / 2`` part alone.
         """
         c = dcm_from_quat(self.q)
-        n_b, t_b = _constraint_axes(axis, self.aoa)
+        n_b, t_b = constraint_axes(axis, self.aoa)
         a = c @ n_b
         v = self.vel
         with_aoa = axis == VERTICAL and self.layout.n_aoa > 0
@@ -1368,7 +1378,7 @@ class NavFilter:
         """
         # the course the attitude implies: the horizontal direction of the wind x
         # axis (the body x axis without the AOA state, whose heading is the yaw)
-        _, t_b = _constraint_axes(VERTICAL, self.aoa)
+        _, t_b = constraint_axes(VERTICAL, self.aoa)
         x_n = dcm_from_quat(self.q) @ t_b
         d = float(np.angle(np.exp(1j * (np.arctan2(x_n[1], x_n[0]) - course_rad))))
         yaw_i = ATT.start + 2  # the heading error is about NED down

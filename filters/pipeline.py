@@ -31,11 +31,11 @@ from filterpy.kalman import update as kf_update
 from filters.ekf import (
     LATERAL,
     VERTICAL,
+    BodyVelocityRecord,
     CovarianceError,
     FilterNoise,
     LostTrackError,
     NavFilter,
-    SideslipRecord,
     update_correlated,
 )
 from filters.state import ATT, B_F, POS, RATE, VEL
@@ -261,7 +261,7 @@ class Pipeline:
     keep_estimates : bool
         Keep every epoch for :meth:`result` (False for an endless live link:
         :meth:`result` then holds the latest epoch only).
-    sideslip_log : list, optional
+    body_velocity_log : list, optional
         As for :func:`run_filter`.
 
     Raises
@@ -286,7 +286,7 @@ class Pipeline:
         bound: bool = False,
         on_epoch=None,
         keep_estimates: bool = True,
-        sideslip_log: list[SideslipRecord] | None = None,
+        body_velocity_log: list[BodyVelocityRecord] | None = None,
     ) -> None:
         method = compensation or cfg.filter.compensation
         if method == "oracle" and (true_layout is None or truth is None):
@@ -311,7 +311,7 @@ class Pipeline:
         self.bound = bound
         self.on_epoch = on_epoch
         self.keep_estimates = keep_estimates
-        self.sideslip_log = sideslip_log
+        self.body_velocity_log = body_velocity_log
         self.n_epochs = 0
         self.n_channels = cfg.layout.n_sensors
         self.solver = solver
@@ -562,7 +562,7 @@ class Pipeline:
             remainder_updates=cfg.filter.remainder_updates,
             attitude_remainder_updates=cfg.filter.attitude_remainder_updates,
         )
-        nf.sideslip_log = self.sideslip_log
+        nf.body_velocity_log = self.body_velocity_log
         self.nf = nf
         nq = self._pairs.shape[0]
         self._nq = nq
@@ -1019,7 +1019,7 @@ def run_filter(
     truth: FlightTruth | None = None,
     bound: bool = False,
     progress=None,
-    sideslip_log: list[SideslipRecord] | None = None,
+    body_velocity_log: list[BodyVelocityRecord] | None = None,
 ) -> RunResult:
     """Run the GPS/array filter over a whole run (a :class:`Pipeline` fed in arrival order).
 
@@ -1046,9 +1046,9 @@ def run_filter(
         Also run the covariance recursion linearised at ``truth`` (the bound).
     progress : callable, optional
         Called with the fraction done (0..1) now and then.
-    sideslip_log : list, optional
+    body_velocity_log : list, optional
         Every zero-sideslip update is appended to it as a
-        :class:`filters.ekf.SideslipRecord` (what ``ngnav remainder`` measures).
+        :class:`filters.ekf.BodyVelocityRecord` (what ``ngnav remainder`` measures).
 
     Raises
     ------
@@ -1076,7 +1076,7 @@ def run_filter(
         true_layout=true_layout,
         truth=truth,
         bound=bound,
-        sideslip_log=sideslip_log,
+        body_velocity_log=body_velocity_log,
     )
     try:
         _feed(pipe, samples, fixes, progress)

@@ -1,15 +1,18 @@
-"""How long the zero-sideslip model's second-order remainder persists, against a truth.
+"""How long the vehicle model's second-order remainders persist, against a truth.
 
 The sideslip update (:meth:`filters.ekf.NavFilter.update_sideslip`) linearises the
-body-lateral velocity ``e_y . C^T v`` at the nominal state and adds the variance of
-what the linearisation leaves out (the remainder, second order in the attitude and
-velocity errors) to R, counted ``filter.remainder_updates`` times and its
-attitude-product part ``filter.attitude_remainder_updates`` times: the number of
-consecutive updates that share one value of it. Those counts are properties of a
-flight, not of the filter; this module measures them on simulated flights.
+body-lateral velocity ``e_y . C^T v`` at the nominal state (the angle-of-attack update
+the velocity along the wind-normal axis ``n_b(alpha)`` in the same way) and adds the
+variance of what the linearisation leaves out (the remainder, second order in the
+attitude, velocity and angle-of-attack errors) to R, counted
+``filter.remainder_updates`` times and its attitude-product part
+``filter.attitude_remainder_updates`` times: the number of consecutive updates that
+share one value of it. Those counts are properties of a flight, not of the filter;
+this module measures them on simulated flights.
 
-At every sideslip update of a run (:class:`filters.ekf.SideslipRecord`) the truth
-gives the remainder actually left,
+At every such update of a run (:class:`filters.ekf.BodyVelocityRecord`) the truth
+gives the remainder actually left (:func:`realized_remainder`; the lateral model's
+shown),
 
 ``r = e_y . C_true^T v_true - (v_lat + h_vel . dv + h_att . dtheta)``
 
@@ -32,11 +35,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from filters.ekf import CovarianceError, SideslipRecord
+from filters.ekf import LATERAL, VERTICAL, BodyVelocityRecord, CovarianceError, constraint_axes
+from filters.evaluate import truth_aoa_rad
 from filters.pipeline import run_filter
 from ngnav.flight import FlightTruth
 from ngnav.flight_scenario import FlightScenario
-from ngnav.rotation import dcm_from_quat, quat_conjugate, quat_multiply, quat_to_rotvec
+from ngnav.rotation import dcm_from_quat, quat_conjugate, quat_multiply, quat_to_rotvec, skew
 
 #: Lag-1 correlations are clipped to this before ``(1 + rho) / (1 - rho)``: a
 #: remainder constant over a window would otherwise count infinitely often.
@@ -108,45 +112,69 @@ def rotvec_between(q_true: np.ndarray, q_est: np.ndarray) -> np.ndarray:
 
 
 def realized_remainder(
-    rec: SideslipRecord, q_true_nb: np.ndarray, vel_true_ned_mps: np.ndarray
+    rec: BodyVelocityRecord,
+    q_true_nb: np.ndarray,
+    vel_true_ned_mps: np.ndarray,
+    aoa_true_rad: float = 0.0,
 ) -> tuple[float, float]:
-    """The remainder a sideslip update left, and its attitude-product part (m/s).
+    """The remainder a vehicle-model update left, and its attitude-product part (m/s).
 
-    ``r`` is the true body-lateral velocity minus the update's linear prediction of
-    it from the true errors; ``r_att = dtheta^T A dtheta / 2`` with ``a = C e_y`` and
-    ``A = (a v^T + v a^T) / 2 - (a . v) I`` at the nominal state (the quadratic form
+    ``r`` is the true velocity along the true constraint axis (``n_b(alpha_true)`` for
+    the vertical model, ``e_y`` for the lateral) minus the update's linear prediction
+    of it from the true errors, ``v_axis + a . dv + a^T [v]x dtheta + dv_daoa
+    (alpha_true - alpha)`` with ``a = C n_b(alpha)`` at the nominal state (the
+    constraint's geometric Jacobian; the vertical update's own ``h_vel`` also carries
+    the lift law's dependence on the speed). The angle-of-attack term takes the true angle's
+    error itself, so what the lift law leaves out of the angle is not counted as the
+    constraint's remainder. ``r_att = dtheta^T A dtheta / 2``, ``A = (a v^T + v a^T) / 2
+    - (a . v) I`` (the quadratic form
     :meth:`filters.ekf.NavFilter.body_velocity_second_order` takes the moments of).
+    ``aoa_true_rad`` is ignored for the lateral model.
     """
     dth = rotvec_between(q_true_nb, rec.q_nb)
-    dv = np.asarray(vel_true_ned_mps, dtype=float) - rec.vel_ned_mps
-    true_lat = float(dcm_from_quat(q_true_nb)[:, 1] @ vel_true_ned_mps)
-    r = true_lat - (rec.v_lat_mps + float(rec.h_vel @ dv) + float(rec.h_att @ dth))
-    a = dcm_from_quat(rec.q_nb)[:, 1]
     v = rec.vel_ned_mps
+    dv = np.asarray(vel_true_ned_mps, dtype=float) - v
+    n_true, _ = constraint_axes(rec.axis, aoa_true_rad if rec.axis == VERTICAL else 0.0)
+    true_val = float((dcm_from_quat(q_true_nb) @ n_true) @ vel_true_ned_mps)
+    n_b, _ = constraint_axes(rec.axis, rec.aoa_rad)
+    a = dcm_from_quat(rec.q_nb) @ n_b
+    lin = rec.v_axis_mps + float(a @ dv) + float(a @ skew(v) @ dth)
+    if rec.axis == VERTICAL:
+        lin += rec.dv_daoa_mps * (aoa_true_rad - rec.aoa_rad)
     m = 0.5 * (np.outer(a, v) + np.outer(v, a)) - float(a @ v) * np.eye(3)
-    return r, 0.5 * float(dth @ m @ dth)
+    return true_val - lin, 0.5 * float(dth @ m @ dth)
 
 
-def realized_remainders(records: list[SideslipRecord], truth: FlightTruth) -> RealizedRemainders:
+def realized_remainders(
+    records: list[BodyVelocityRecord], truth: FlightTruth
+) -> RealizedRemainders:
     """:func:`realized_remainder` at every update, the truth taken at the update's time.
+
+    The records must be of one model (axis); the vertical model's true angle of
+    attack is the body x-z angle of the true velocity
+    (:func:`filters.evaluate.truth_aoa_rad`).
 
     Raises
     ------
     ValueError
-        If an update's time is not a truth sample time (within 1e-6 s).
+        If there are no records, they mix the two models, or an update's time is not a
+        truth sample time (within 1e-6 s).
     """
     if not records:
-        raise ValueError("no sideslip updates recorded (is filter.sideslip_sigma_deg > 0?)")
+        raise ValueError("no vehicle-model updates recorded (is filter.sideslip_sigma_deg > 0?)")
+    if len({r.axis for r in records}) != 1:
+        raise ValueError("records of the lateral and vertical models must be measured apart")
     t = np.array([r.t_s for r in records])
     k = np.clip(np.searchsorted(truth.t_s, t), 1, truth.t_s.shape[0] - 1)
     k -= (t - truth.t_s[k - 1]) < (truth.t_s[k] - t)
     off = np.abs(truth.t_s[k] - t).max()
     if off > 1e-6:
-        raise ValueError(f"sideslip updates fall between truth samples (by up to {off:.2e} s)")
+        raise ValueError(f"vehicle-model updates fall between truth samples (by up to {off:.2e} s)")
+    aoa = truth_aoa_rad(truth, k) if records[0].axis == VERTICAL else np.zeros(k.shape[0])
     rr = np.array(
         [
-            realized_remainder(rec, truth.q_nb[j], truth.vel_ned_mps[j])
-            for rec, j in zip(records, k.tolist(), strict=True)
+            realized_remainder(rec, truth.q_nb[j], truth.vel_ned_mps[j], float(al))
+            for rec, j, al in zip(records, k.tolist(), aoa.tolist(), strict=True)
         ]
     )
     rem = np.array([rec.remainder for rec in records])  # mean, var, var_att, mean_att
@@ -251,28 +279,38 @@ def window_persistence(
     return out
 
 
-def _one_run(scn: FlightScenario, i: int) -> RealizedRemainders | str:
+#: The vehicle models by the name the study reports them under.
+MODELS: dict[str, int] = {"lateral": LATERAL, "vertical": VERTICAL}
+
+
+def _one_run(scn: FlightScenario, i: int) -> dict[str, RealizedRemainders] | str:
     from ngnav.simulate import simulate_flight
 
     sim = simulate_flight(scn, i)
-    log: list[SideslipRecord] = []
+    log: list[BodyVelocityRecord] = []
     try:
-        run_filter(sim.samples, sim.fixes, sim.config, sideslip_log=log)
+        run_filter(sim.samples, sim.fixes, sim.config, body_velocity_log=log)
     except CovarianceError as exc:
         return f"run {i} diverged and is left out: {exc}"
-    return realized_remainders(log, sim.truth)
+    out = {}
+    for name, axis in MODELS.items():
+        recs = [r for r in log if r.axis == axis]
+        if recs:
+            out[name] = realized_remainders(recs, sim.truth)
+    return out
 
 
 def remainder_study(
     scn: FlightScenario, runs: int, window_s: float, workers: int = 2, progress: bool = False
 ) -> dict:
-    """Measure the sideslip remainder's size and persistence over ``runs`` flights.
+    """Measure the vehicle model's remainders' size and persistence over ``runs`` flights.
 
     Runs use ``default_rng([seed, i])`` (:func:`ngnav.simulate.simulate_flight`) and
     execute with dask's process scheduler (``workers`` processes; 1: in this
-    process). Returns the counts the filter used, the windows
-    (:func:`window_persistence` over ``window_s`` seconds, as dicts) and the same
-    over the whole flight, and the runs left out (diverged).
+    process). Returns the counts the filter used; under ``models``, for the lateral
+    (sideslip) model and, when the scenario has it, the vertical (angle-of-attack)
+    one: the windows (:func:`window_persistence` over ``window_s`` seconds, as dicts)
+    and the same over the whole flight; and the runs left out (diverged).
     """
     import dask
     from tqdm import tqdm
@@ -281,11 +319,12 @@ def remainder_study(
         raise ValueError(f"runs must be at least 1, got {runs}")
     if not (np.isfinite(window_s) and window_s > 0):
         raise ValueError(f"window must be a positive number of seconds, got {window_s}")
-    if scn.filter.sideslip_sigma_deg <= 0:
+    if scn.filter.sideslip_sigma_deg <= 0 and scn.filter.aoa_sigma_deg <= 0:
         raise ValueError(
-            f"scenario {scn.name!r} has no sideslip model (filter.sideslip_sigma_deg = 0)"
+            f"scenario {scn.name!r} has no vehicle model (filter.sideslip_sigma_deg and "
+            "filter.aoa_sigma_deg are 0)"
         )
-    results: list[RealizedRemainders | str] = []
+    results: list[dict[str, RealizedRemainders] | str] = []
     bar = tqdm(total=runs, desc="remainder", disable=not progress, unit="run")
     chunk = max(1, workers)
     for start in range(0, runs, chunk):
@@ -302,15 +341,23 @@ def remainder_study(
     done = [r for r in results if not isinstance(r, str)]
     if not done:
         raise RuntimeError(f"every run diverged: {left_out}")
-    t_end = max(float(r.t_s[-1]) for r in done)
-    edges = np.arange(0.0, t_end + window_s, window_s)
-    whole = window_persistence(done, np.array([0.0, t_end + 1.0]))[0]
+    models = {}
+    for name in MODELS:
+        runs_m = [r[name] for r in done if name in r]
+        if not runs_m:
+            continue
+        t_end = max(float(r.t_s[-1]) for r in runs_m)
+        edges = np.arange(0.0, t_end + window_s, window_s)
+        whole = window_persistence(runs_m, np.array([0.0, t_end + 1.0]))[0]
+        models[name] = {
+            "whole": whole.__dict__,
+            "windows": [w.__dict__ for w in window_persistence(runs_m, edges)],
+        }
     return {
         "scenario": scn.name,
         "runs": len(done),
         "remainder_updates": scn.filter.remainder_updates,
         "attitude_remainder_updates": scn.filter.attitude_remainder_updates,
-        "whole": whole.__dict__,
-        "windows": [w.__dict__ for w in window_persistence(done, edges)],
+        "models": models,
         "left_out": left_out,
     }

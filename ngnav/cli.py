@@ -452,7 +452,7 @@ def cmd_remainder(args: argparse.Namespace) -> int:
         print(json.dumps(out, indent=2))
         return 0
     print(
-        f"{out['scenario']}: the zero-sideslip remainder over {out['runs']} runs, against the "
+        f"{out['scenario']}: the vehicle model's remainders over {out['runs']} runs, against the "
         f"truth (the filter counts it {out['remainder_updates']:g} times, its attitude part "
         f"{out['attitude_remainder_updates']:g} times)"
     )
@@ -462,17 +462,19 @@ def cmd_remainder(args: argparse.Namespace) -> int:
         "updates one value counts for as an AR(1); tau: the same summed over all lags "
         "(integrated autocorrelation)"
     )
-    print(
-        "    window s        updates      z2    rho  count    tau   att z2  att rho  att count"
-        "  att tau"
-    )
-    for w in [*out["windows"], out["whole"]]:
-        label = "whole flight" if w is out["whole"] else f"{w['t0_s']:6.1f}-{w['t1_s']:6.1f}"
+    for name, m in out["models"].items():
+        print(f"  {name} model ({'sideslip' if name == 'lateral' else 'angle of attack'}):")
         print(
-            f"    {label:13s} {w['updates']:8d} {w['z2']:7.2f} {w['rho']:6.2f} {w['count']:6.1f} "
-            f"{w['tau']:6.1f} {w['z2_att']:8.2f} {w['rho_att']:8.2f} {w['count_att']:10.1f} "
-            f"{w['tau_att']:8.1f}"
+            "    window s        updates      z2    rho  count    tau   att z2  att rho"
+            "  att count  att tau"
         )
+        for w in [*m["windows"], m["whole"]]:
+            label = "whole flight" if w is m["whole"] else f"{w['t0_s']:6.1f}-{w['t1_s']:6.1f}"
+            print(
+                f"    {label:13s} {w['updates']:8d} {w['z2']:7.2f} {w['rho']:6.2f} "
+                f"{w['count']:6.1f} {w['tau']:6.1f} {w['z2_att']:8.2f} {w['rho_att']:8.2f} "
+                f"{w['count_att']:10.1f} {w['tau_att']:8.1f}"
+            )
     for msg in out["left_out"]:
         print(f"  {msg}")
     return 0
@@ -599,7 +601,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "remainder",
-        help="size and persistence of the sideslip model's second-order remainder, against "
+        help="size and persistence of the vehicle model's second-order remainders, against "
         "the truth of simulated runs (what filter.remainder_updates should be)",
     )
     _add_flight_args(p, default="tactical")

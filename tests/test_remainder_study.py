@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from filters.ekf import SIDESLIP_REMAINDER_UPDATES, remainder_variance
+from filters.ekf import LATERAL, SIDESLIP_REMAINDER_UPDATES, VERTICAL, remainder_variance
 from filters.pipeline import run_filter
 from filters.remainder_study import (
     RHO_MAX,
@@ -34,9 +34,9 @@ def _one_update(slip_mps: float = 0.0):
     c = dcm_from_quat(nf.q)
     nf.vel = 20.0 * c[:, 0] + slip_mps * c[:, 1]
     q0, v0 = nf.q.copy(), nf.vel.copy()
-    nf.sideslip_log = []
+    nf.body_velocity_log = []
     nf.update_sideslip(np.deg2rad(0.01), 5.0)
-    (rec,) = nf.sideslip_log
+    (rec,) = nf.body_velocity_log
     return nf, rec, q0, v0
 
 
@@ -45,9 +45,10 @@ def test_the_log_holds_the_state_the_update_linearised_at():
     np.testing.assert_array_equal(rec.q_nb, q0)
     np.testing.assert_array_equal(rec.vel_ned_mps, v0)
     v_lat, h = nf.body_velocity_model(q0, v0)
-    assert rec.v_lat_mps == v_lat
+    assert rec.v_axis_mps == v_lat
     np.testing.assert_array_equal(rec.h_att, h[0, 6:9])
     np.testing.assert_array_equal(rec.h_vel, h[0, 3:6])
+    assert (rec.axis, rec.aoa_rad, rec.dv_daoa_mps) == (LATERAL, 0.0, 0.0)
     assert rec.accepted and nf.counters.sideslip_used == 1
     assert not np.array_equal(nf.q, q0)  # the update moved the state after the record
     # a rejected update is recorded too
@@ -85,6 +86,47 @@ def test_realized_remainder_is_the_rotations_second_order_term():
         assert 6.0 < big / small < 10.0  # halving the error divides it by 8
 
 
+def test_realized_vertical_remainder_is_the_second_order_term_with_the_angle():
+    """The angle-of-attack model: the wind-normal axis ``n_b(alpha)`` turns with the
+    angle, ``n_b(alpha + da) = n_b - da t_b - da^2 n_b / 2 + O(3)``, so beyond the
+    linear terms (``b = C t_b``) the true velocity along it holds ``(dtheta x a) . dv +
+    (dtheta x (dtheta x a)) . v / 2 - da b . dv - da (dtheta x b) . v - da^2 (a . v) / 2``;
+    what is left shrinks as the cube of the error's size."""
+    nf, _, _ = level_filter(aoa_sigma_rad=0.02)
+    nf.q = quat_from_rotvec(np.array([0.3, -0.1, 2.0]))
+    nf.aoa_b = np.deg2rad(3.0)
+    c = dcm_from_quat(nf.q)
+    al = nf.aoa
+    nf.vel = 20.0 * (c @ [np.cos(al), 0.0, np.sin(al)])  # at the angle of attack
+    q0, v0 = nf.q.copy(), nf.vel.copy()
+    nf.body_velocity_log = []
+    nf.update_angle_of_attack(np.deg2rad(0.01), 5.0)
+    (rec,) = nf.body_velocity_log
+    assert rec.axis == VERTICAL and rec.aoa_rad == pytest.approx(al)
+    a = c @ [-np.sin(al), 0.0, np.cos(al)]
+    b = c @ [np.cos(al), 0.0, np.sin(al)]
+    assert rec.dv_daoa_mps == pytest.approx(-(b @ v0), rel=1e-12)
+    dth0, dv0, da0 = np.array([0.02, -0.03, 0.025]), np.array([0.4, -0.3, 0.2]), 0.03
+    left = []
+    for eps in (1.0, 0.5, 0.25, 0.125):
+        dth, dv, da = eps * dth0, eps * dv0, eps * da0
+        q_true = quat_multiply(quat_from_rotvec(dth), q0)
+        r, r_att = realized_remainder(rec, q_true, v0 + dv, al + da)
+        second_att = 0.5 * np.cross(dth, np.cross(dth, a)) @ v0
+        second = (
+            np.cross(dth, a) @ dv
+            + second_att
+            - da * (b @ dv)
+            - da * (np.cross(dth, b) @ v0)
+            - 0.5 * da * da * (a @ v0)
+        )
+        assert r_att == pytest.approx(second_att, rel=1e-12)
+        left.append(abs(r - second))
+    assert left[-1] < 0.05 * abs(second)
+    for big, small in itertools.pairwise(left):
+        assert 6.0 < big / small < 10.0
+
+
 def _truth(t_s: np.ndarray, q_nb: np.ndarray, vel: np.ndarray) -> FlightTruth:
     n = t_s.shape[0]
     z = np.zeros((n, 3))
@@ -105,9 +147,11 @@ def test_each_update_meets_the_truth_at_its_own_time():
     assert expect2 != expect3
     np.testing.assert_array_equal(got.var_att_m2ps2, [rec.remainder.var_att] * 2)
     np.testing.assert_array_equal(got.mean_att_mps, [rec.remainder.mean_att] * 2)
+    with pytest.raises(ValueError, match="must be measured apart"):
+        realized_remainders([rec, rec._replace(axis=VERTICAL)], _truth(t, q, v))
     with pytest.raises(ValueError, match="fall between truth samples"):
         realized_remainders([rec._replace(t_s=0.015)], _truth(t, q, v))
-    with pytest.raises(ValueError, match="no sideslip updates recorded"):
+    with pytest.raises(ValueError, match="no vehicle-model updates recorded"):
         realized_remainders([], _truth(t, q, v))
 
 
@@ -205,8 +249,8 @@ def test_remainder_counts_are_settings_that_reach_the_update():
         )
         sim = simulate_flight(scn, 0)
         log = []
-        run_filter(sim.samples, sim.fixes, sim.config, sideslip_log=log)
-        firsts[n_att] = log[0]
+        run_filter(sim.samples, sim.fixes, sim.config, body_velocity_log=log)
+        firsts[n_att] = next(r for r in log if r.axis == LATERAL)
     a, b = firsts[40.0], firsts[7.0]
     assert a.t_s == b.t_s and a.remainder == b.remainder
     speed = np.hypot(*a.vel_ned_mps[:2])
@@ -234,11 +278,13 @@ def test_remainder_cli():
     out = json.loads(proc.stdout)
     assert out["runs"] == 2 and out["left_out"] == []
     assert (out["remainder_updates"], out["attitude_remainder_updates"]) == (4.0, 40.0)
-    assert [(w["t0_s"], w["t1_s"]) for w in out["windows"]] == [(0.0, 30.0), (30.0, 60.0)]
-    whole = out["whole"]
-    assert whole["updates"] == sum(w["updates"] for w in out["windows"])
-    # 5 Hz over two flights of about 60 s each
-    assert 500 < whole["updates"] <= 2 * 5 * 62
+    assert set(out["models"]) == {"lateral", "vertical"}  # tactical flies both models
+    for m in out["models"].values():
+        assert [(w["t0_s"], w["t1_s"]) for w in m["windows"]] == [(0.0, 30.0), (30.0, 60.0)]
+        whole = m["whole"]
+        assert whole["updates"] == sum(w["updates"] for w in m["windows"])
+        # 5 Hz over two flights of about 60 s each
+        assert 500 < whole["updates"] <= 2 * 5 * 62
     bad = run_cli("remainder", "--scenario", "static", "--runs", "1", check=False)
     assert bad.returncode == 2
-    assert "has no sideslip model" in bad.stderr
+    assert "has no vehicle model" in bad.stderr
