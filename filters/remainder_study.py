@@ -49,7 +49,7 @@ RHO_MAX = 0.999
 
 @dataclass(frozen=True)
 class RealizedRemainders:
-    """One run's sideslip updates with the remainders the truth shows.
+    """One run's updates of one vehicle model with the remainders the truth shows.
 
     Attributes
     ----------
@@ -61,6 +61,9 @@ class RealizedRemainders:
         The model's mean (m/s) and variance (m^2/s^2) of the remainder.
     mean_att_mps, var_att_m2ps2 : arrays (U,)
         The same for the attitude-product part.
+    r_m2ps2 : array (U,) or None
+        The R each update used (the sigma's variance plus the remainder as counted),
+        m^2/s^2.
     """
 
     t_s: np.ndarray
@@ -70,6 +73,7 @@ class RealizedRemainders:
     var_m2ps2: np.ndarray
     mean_att_mps: np.ndarray
     var_att_m2ps2: np.ndarray
+    r_m2ps2: np.ndarray | None = None
 
     def z(self) -> np.ndarray:
         """The remainder standardised by the model, (U,)."""
@@ -89,7 +93,9 @@ class WindowPersistence:
     correlation of consecutive updates; ``count`` and ``count_att``: ``(1 + rho) /
     (1 - rho)`` at that median (1 for ``rho <= 0``), the updates one value counts for;
     ``tau`` and ``tau_att``: the same counted without the AR(1) assumption
-    (:func:`integrated_autocorrelation` of the runs' standardised remainders pooled).
+    (:func:`integrated_autocorrelation` of the runs' standardised remainders pooled);
+    ``r_ratio``: the updates' R summed over the realized remainder's squares summed
+    (how much wider R is than the remainder it stands for; NaN without R).
     """
 
     t0_s: float
@@ -103,6 +109,7 @@ class WindowPersistence:
     count_att: float
     tau: float
     tau_att: float
+    r_ratio: float = float("nan")
 
 
 def rotvec_between(q_true: np.ndarray, q_est: np.ndarray) -> np.ndarray:
@@ -178,7 +185,10 @@ def realized_remainders(
         ]
     )
     rem = np.array([rec.remainder for rec in records])  # mean, var, var_att, mean_att
-    return RealizedRemainders(t, rr[:, 0], rr[:, 1], rem[:, 0], rem[:, 1], rem[:, 3], rem[:, 2])
+    r_used = np.array([rec.r_m2ps2 for rec in records])
+    return RealizedRemainders(
+        t, rr[:, 0], rr[:, 1], rem[:, 0], rem[:, 1], rem[:, 3], rem[:, 2], r_used
+    )
 
 
 def lag1_correlation(x: np.ndarray) -> float:
@@ -239,6 +249,13 @@ def integrated_autocorrelation(series: list[np.ndarray], c: float = 5.0) -> floa
     return max(tau, 1.0)
 
 
+def _nanmedian(x: list[float]) -> float:
+    """Median of the finite values; NaN (no warning) when there is none."""
+    x = np.asarray(x, dtype=float)
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if x.size else float("nan")
+
+
 def window_persistence(
     runs: list[RealizedRemainders], edges_s: np.ndarray
 ) -> list[WindowPersistence]:
@@ -246,6 +263,7 @@ def window_persistence(
     out = []
     for t0, t1 in zip(edges_s[:-1].tolist(), edges_s[1:].tolist(), strict=True):
         z2, z2a, rho, rho_a, zs, zas, n = [], [], [], [], [], [], 0
+        r_sum, r2_sum = 0.0, 0.0
         for run in runs:
             m = (run.t_s >= t0) & (run.t_s < t1)
             if not m.any():
@@ -258,9 +276,11 @@ def window_persistence(
             rho_a.append(lag1_correlation(za))
             zs.append(z)
             zas.append(za)
+            r_sum += float(run.r_m2ps2[m].sum()) if run.r_m2ps2 is not None else np.nan
+            r2_sum += float(np.sum(run.r_mps[m] ** 2))
         if n == 0:
             continue
-        r, ra = float(np.nanmedian(rho)), float(np.nanmedian(rho_a))
+        r, ra = _nanmedian(rho), _nanmedian(rho_a)
         out.append(
             WindowPersistence(
                 t0,
@@ -274,6 +294,7 @@ def window_persistence(
                 updates_per_value(ra),
                 integrated_autocorrelation(zs),
                 integrated_autocorrelation(zas),
+                r_sum / r2_sum if r2_sum > 0 else float("nan"),
             )
         )
     return out

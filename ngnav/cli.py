@@ -460,20 +460,21 @@ def cmd_remainder(args: argparse.Namespace) -> int:
         "  z2: mean squared remainder over the model's variance (1: the model's size); "
         "rho: median lag-1 correlation over runs; count: (1 + rho) / (1 - rho), the "
         "updates one value counts for as an AR(1); tau: the same summed over all lags "
-        "(integrated autocorrelation)"
+        "(integrated autocorrelation); R/r2: the updates' R over the realized remainder's "
+        "mean square"
     )
     for name, m in out["models"].items():
         print(f"  {name} model ({'sideslip' if name == 'lateral' else 'angle of attack'}):")
         print(
             "    window s        updates      z2    rho  count    tau   att z2  att rho"
-            "  att count  att tau"
+            "  att count  att tau     R/r2"
         )
         for w in [*m["windows"], m["whole"]]:
             label = "whole flight" if w is m["whole"] else f"{w['t0_s']:6.1f}-{w['t1_s']:6.1f}"
             print(
                 f"    {label:13s} {w['updates']:8d} {w['z2']:7.2f} {w['rho']:6.2f} "
                 f"{w['count']:6.1f} {w['tau']:6.1f} {w['z2_att']:8.2f} {w['rho_att']:8.2f} "
-                f"{w['count_att']:10.1f} {w['tau_att']:8.1f}"
+                f"{w['count_att']:10.1f} {w['tau_att']:8.1f} {w['r_ratio']:8.1f}"
             )
     for msg in out["left_out"]:
         print(f"  {msg}")

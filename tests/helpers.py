@@ -13,6 +13,9 @@ from ngnav.layout import ArrayLayout, nine_accelerometer_cube
 #: The repository's root (where ``python -m ngnav.cli`` runs).
 ROOT = Path(__file__).resolve().parents[1]
 
+#: CLI flags of the short ``tactical`` flight the subprocess tests run (200 Hz array).
+SHORT_TACTICAL_ARGS = ("--scenario", "tactical", "--set", "run.rate_hz=200")
+
 #: The three cross products of the rate (wy wz, wx wz, wx wy) as index pairs.
 PAIRS = np.array([[1, 2], [0, 2], [0, 1]])
 

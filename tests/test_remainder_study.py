@@ -23,7 +23,7 @@ from ngnav.flight_scenario import load_flight
 from ngnav.rotation import dcm_from_quat, quat_from_rotvec, quat_multiply
 from ngnav.runconfig import FilterSettings
 from ngnav.simulate import simulate_flight
-from tests.helpers import level_filter, run_cli
+from tests.helpers import SHORT_TACTICAL_ARGS, level_filter, run_cli
 
 
 def _one_update(slip_mps: float = 0.0):
@@ -147,6 +147,9 @@ def test_each_update_meets_the_truth_at_its_own_time():
     assert expect2 != expect3
     np.testing.assert_array_equal(got.var_att_m2ps2, [rec.remainder.var_att] * 2)
     np.testing.assert_array_equal(got.mean_att_mps, [rec.remainder.mean_att] * 2)
+    np.testing.assert_array_equal(got.r_m2ps2, [rec.r_m2ps2] * 2)
+    (w,) = window_persistence([got], np.array([0.0, 1.0]))
+    assert w.r_ratio == pytest.approx(2 * rec.r_m2ps2 / (expect2**2 + expect3**2), rel=1e-12)
     with pytest.raises(ValueError, match="must be measured apart"):
         realized_remainders([rec, rec._replace(axis=VERTICAL)], _truth(t, q, v))
     with pytest.raises(ValueError, match="fall between truth samples"):
@@ -210,6 +213,7 @@ def test_window_persistence_recovers_known_ar1_sequences():
     assert abs(w.rho_att - 0.9) < 0.03
     assert 3.5 < w.count < 4.5
     assert 15.0 < w.count_att < 24.0
+    assert np.isnan(w.r_ratio)  # no R given
     assert 3.0 < w.tau < 5.0
     assert 13.0 < w.tau_att < 25.0
     # windows split the updates; an empty window is left out
@@ -263,18 +267,7 @@ def test_remainder_counts_are_settings_that_reach_the_update():
 
 def test_remainder_cli():
     """``ngnav remainder`` as a real subprocess on two short tactical runs."""
-    proc = run_cli(
-        "remainder",
-        "--scenario",
-        "tactical",
-        "--set",
-        "run.rate_hz=200",
-        "--runs",
-        "2",
-        "--window",
-        "30",
-        "--json",
-    )
+    proc = run_cli("remainder", *SHORT_TACTICAL_ARGS, "--runs", "2", "--window", "30", "--json")
     out = json.loads(proc.stdout)
     assert out["runs"] == 2 and out["left_out"] == []
     assert (out["remainder_updates"], out["attitude_remainder_updates"]) == (4.0, 40.0)

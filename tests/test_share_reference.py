@@ -8,7 +8,7 @@ from scipy.stats import binom
 
 from filters.evaluate import chi2_bounds
 from filters.share_reference import consistent_share, statistic_autocorrelation
-from tests.helpers import run_cli
+from tests.helpers import SHORT_TACTICAL_ARGS, run_cli
 
 
 def test_independent_epochs_give_the_binomial_share():
@@ -95,10 +95,7 @@ def test_cli_prints_the_reference_beside_each_block():
     the consistent filter's share, a median at or above its 5th percentile."""
     proc = run_cli(
         "consistency",
-        "--scenario",
-        "tactical",
-        "--set",
-        "run.rate_hz=200",
+        *SHORT_TACTICAL_ARGS,
         "--runs",
         "2",
         "--workers",
