@@ -94,8 +94,9 @@ class WindowPersistence:
     (1 - rho)`` at that median (1 for ``rho <= 0``), the updates one value counts for;
     ``tau`` and ``tau_att``: the same counted without the AR(1) assumption
     (:func:`integrated_autocorrelation` of the runs' standardised remainders pooled);
-    ``r_ratio``: the updates' R summed over the realized remainder's squares summed
-    (how much wider R is than the remainder it stands for; NaN without R).
+    ``r_ratio``: the updates' R summed over the squares of the realized remainder less
+    the model's mean (the part the update's prediction leaves) summed: how much wider
+    R is than the remainder it stands for; NaN without R.
     """
 
     t0_s: float
@@ -277,7 +278,7 @@ def window_persistence(
             zs.append(z)
             zas.append(za)
             r_sum += float(run.r_m2ps2[m].sum()) if run.r_m2ps2 is not None else np.nan
-            r2_sum += float(np.sum(run.r_mps[m] ** 2))
+            r2_sum += float(np.sum((run.r_mps[m] - run.mean_mps[m]) ** 2))
         if n == 0:
             continue
         r, ra = _nanmedian(rho), _nanmedian(rho_a)

@@ -460,8 +460,8 @@ def cmd_remainder(args: argparse.Namespace) -> int:
         "  z2: mean squared remainder over the model's variance (1: the model's size); "
         "rho: median lag-1 correlation over runs; count: (1 + rho) / (1 - rho), the "
         "updates one value counts for as an AR(1); tau: the same summed over all lags "
-        "(integrated autocorrelation); R/r2: the updates' R over the realized remainder's "
-        "mean square"
+        "(integrated autocorrelation); R/r2: the updates' R over the mean square of the "
+        "realized remainder less the model's mean"
     )
     for name, m in out["models"].items():
         print(f"  {name} model ({'sideslip' if name == 'lateral' else 'angle of attack'}):")

@@ -149,7 +149,8 @@ def test_each_update_meets_the_truth_at_its_own_time():
     np.testing.assert_array_equal(got.mean_att_mps, [rec.remainder.mean_att] * 2)
     np.testing.assert_array_equal(got.r_m2ps2, [rec.r_m2ps2] * 2)
     (w,) = window_persistence([got], np.array([0.0, 1.0]))
-    assert w.r_ratio == pytest.approx(2 * rec.r_m2ps2 / (expect2**2 + expect3**2), rel=1e-12)
+    left2, left3 = expect2 - rec.remainder.mean, expect3 - rec.remainder.mean
+    assert w.r_ratio == pytest.approx(2 * rec.r_m2ps2 / (left2**2 + left3**2), rel=1e-12)
     with pytest.raises(ValueError, match="must be measured apart"):
         realized_remainders([rec, rec._replace(axis=VERTICAL)], _truth(t, q, v))
     with pytest.raises(ValueError, match="fall between truth samples"):
