@@ -129,6 +129,18 @@ def constraint_axes(axis: int, aoa_rad: float) -> tuple[np.ndarray, np.ndarray]:
     raise ValueError(f"axis must be LATERAL (1) or VERTICAL (2), got {axis}")
 
 
+def attitude_product_matrix(a_ned: np.ndarray, v_ned_mps: np.ndarray) -> np.ndarray:
+    """``A = (a v^T + v a^T) / 2 - (a . v) I`` (3, 3), m/s per rad^2.
+
+    The velocity along a constraint axis ``a`` (NED) of a body turned by the small
+    NED rotation ``dtheta`` holds ``dtheta^T A dtheta / 2`` beyond its linear term
+    (:meth:`NavFilter.body_velocity_second_order`).
+    """
+    a = np.asarray(a_ned, dtype=float)
+    v = np.asarray(v_ned_mps, dtype=float)
+    return 0.5 * (np.outer(a, v) + np.outer(v, a)) - float(a @ v) * np.eye(3)
+
+
 class Remainder(NamedTuple):
     """A body-velocity model's second-order remainder (m/s; variances m^2/s^2).
 
@@ -1238,20 +1250,19 @@ class NavFilter:
         var = sigma_v_mps**2 + remainder_variance(
             rem, self.remainder_updates, self.attitude_remainder_updates
         )
-        blend_var = self.blend_remainder_var() if axis == VERTICAL else 0.0
-        if blend_var > 0.0:
-            # the blend beyond its linear term moves the angle, and the wind-normal
-            # velocity by -(C t_b . v) per radian (body_velocity_model)
+        dv_da = 0.0  # the model's change per radian of angle of attack: -(C t_b . v)
+        if axis == VERTICAL:
             _, t_b = constraint_axes(VERTICAL, self.aoa)
-            dv_da = float((dcm_from_quat(self.q) @ t_b) @ self.vel)
-            lift = self._unblended_aoa()
-            var += dv_da * dv_da * lift * lift * blend_var
+            dv_da = -float((dcm_from_quat(self.q) @ t_b) @ self.vel)
+            blend_var = self.blend_remainder_var()
+            if blend_var > 0.0:
+                # the blend beyond its linear term moves the angle, and the velocity with it
+                lift = self._unblended_aoa()
+                var += dv_da * dv_da * lift * lift * blend_var
         r = np.array([[var]])
         log = self.body_velocity_log
         if log is not None:
             aoa = self.aoa if axis == VERTICAL else 0.0
-            _, t_b = constraint_axes(axis, aoa)
-            dv_da = -float((dcm_from_quat(self.q) @ t_b) @ self.vel) if axis == VERTICAL else 0.0
             rec = (self.t_s, axis, self.q.copy(), self.vel.copy(), aoa, v_axis)
             rec += (h[0, ATT].copy(), h[0, VEL].copy(), dv_da, rem, float(var))
         nis, ok = self._gated_update(np.array([-(v_axis + rem.mean)]), r, h, self.gate1)
@@ -1289,7 +1300,7 @@ class NavFilter:
         with_aoa = axis == VERTICAL and self.layout.n_aoa > 0
         d = 7 if with_aoa else 6
         m = np.zeros((d, d))
-        m[0:3, 0:3] = 0.5 * (np.outer(a, v) + np.outer(v, a)) - float(a @ v) * self._eye3
+        m[0:3, 0:3] = attitude_product_matrix(a, v)
         sa = skew(a)
         m[0:3, 3:6] = sa
         m[3:6, 0:3] = sa.T

@@ -35,7 +35,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from filters.ekf import LATERAL, VERTICAL, BodyVelocityRecord, CovarianceError, constraint_axes
+from filters.ekf import (
+    LATERAL,
+    VERTICAL,
+    BodyVelocityRecord,
+    CovarianceError,
+    attitude_product_matrix,
+    constraint_axes,
+)
 from filters.evaluate import truth_aoa_rad
 from filters.pipeline import run_filter
 from ngnav.flight import FlightTruth
@@ -149,8 +156,7 @@ def realized_remainder(
     lin = rec.v_axis_mps + float(a @ dv) + float(a @ skew(v) @ dth)
     if rec.axis == VERTICAL:
         lin += rec.dv_daoa_mps * (aoa_true_rad - rec.aoa_rad)
-    m = 0.5 * (np.outer(a, v) + np.outer(v, a)) - float(a @ v) * np.eye(3)
-    return true_val - lin, 0.5 * float(dth @ m @ dth)
+    return true_val - lin, 0.5 * float(dth @ attitude_product_matrix(a, v) @ dth)
 
 
 def realized_remainders(
