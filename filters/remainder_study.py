@@ -43,7 +43,7 @@ from filters.ekf import (
     attitude_product_matrix,
     constraint_axes,
 )
-from filters.evaluate import truth_aoa_rad
+from filters.evaluate import truth_aoa_rad, truth_indices
 from filters.pipeline import run_filter
 from ngnav.flight import FlightTruth
 from ngnav.flight_scenario import FlightScenario
@@ -172,18 +172,17 @@ def realized_remainders(
     ------
     ValueError
         If there are no records, they mix the two models, or an update's time is not a
-        truth sample time (within 1e-6 s).
+        truth sample time (:func:`filters.evaluate.truth_indices`).
     """
     if not records:
         raise ValueError("no vehicle-model updates recorded (is filter.sideslip_sigma_deg > 0?)")
     if len({r.axis for r in records}) != 1:
         raise ValueError("records of the lateral and vertical models must be measured apart")
     t = np.array([r.t_s for r in records])
-    k = np.clip(np.searchsorted(truth.t_s, t), 1, truth.t_s.shape[0] - 1)
-    k -= (t - truth.t_s[k - 1]) < (truth.t_s[k] - t)
-    off = np.abs(truth.t_s[k] - t).max()
-    if off > 1e-6:
-        raise ValueError(f"vehicle-model updates fall between truth samples (by up to {off:.2e} s)")
+    try:
+        k = truth_indices(truth, t)
+    except ValueError as exc:
+        raise ValueError(f"vehicle-model updates against the truth: {exc}") from None
     aoa = truth_aoa_rad(truth, k) if records[0].axis == VERTICAL else np.zeros(k.shape[0])
     rr = np.array(
         [
