@@ -561,6 +561,10 @@ class Pipeline:
             quad_feedback=None if se is None else se[6:, 6:12],
             remainder_updates=cfg.filter.remainder_updates,
             attitude_remainder_updates=cfg.filter.attitude_remainder_updates,
+            coast_remainder_updates=cfg.filter.coast_remainder_updates,
+            coast_after_s=cfg.filter.coast_after_s,
+            # a coast's remainder lasts its count of updates after the coast
+            coast_hold_s=cfg.filter.coast_remainder_updates / SIDESLIP_RATE_HZ,
         )
         nf.body_velocity_log = self.body_velocity_log
         self.nf = nf
@@ -993,6 +997,7 @@ class Pipeline:
                 "angle-of-attack updates rejected (gate)": nf.counters.aoa_rejected,
                 "heading resets to the GPS course": nf.counters.heading_resets,
                 "attitude reopened after rejected velocities": nf.counters.attitude_reopens,
+                "vehicle-model updates counted as coasting": nf.counters.coast_model_updates,
                 "grey forecasts fallen back": self.n_fallbacks,
             }
         )

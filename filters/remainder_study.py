@@ -385,6 +385,7 @@ def remainder_study(
         "runs": len(done),
         "remainder_updates": scn.filter.remainder_updates,
         "attitude_remainder_updates": scn.filter.attitude_remainder_updates,
+        "coast_remainder_updates": scn.filter.coast_remainder_updates,
         "models": models,
         "left_out": left_out,
     }

@@ -454,7 +454,8 @@ def cmd_remainder(args: argparse.Namespace) -> int:
     print(
         f"{out['scenario']}: the vehicle model's remainders over {out['runs']} runs, against the "
         f"truth (the filter counts it {out['remainder_updates']:g} times, its attitude part "
-        f"{out['attitude_remainder_updates']:g} times)"
+        f"{out['attitude_remainder_updates']:g} times, the whole in a coast "
+        f"{out['coast_remainder_updates']:g} times)"
     )
     print(
         "  z2: mean squared remainder over the model's variance (1: the model's size); "

@@ -149,6 +149,14 @@ class FilterSettings:
     shipped flights were tuned and measured with (README, "the sideslip
     remainder"); ``ngnav remainder`` measures what a flight's remainders actually
     need, against its truth.
+
+    ``coast_remainder_updates`` (>= 1, default 40) replaces ``remainder_updates``
+    while the filter coasts: from ``coast_after_s`` (default 1 s; longer than the
+    GPS fix interval) without an accepted GPS position until
+    ``coast_remainder_updates / 5 Hz`` seconds after the last such update (the
+    coast's remainder lasts its count of updates after it). 40 is the persistence
+    ``ngnav remainder`` measures through ``uav-survey``'s outage. Setting it equal to
+    ``remainder_updates`` turns the switch off.
     """
 
     rate_hz: float = 100.0
@@ -171,6 +179,8 @@ class FilterSettings:
     position_states: bool = True
     remainder_updates: float = 4.0
     attitude_remainder_updates: float = 40.0
+    coast_remainder_updates: float = 40.0
+    coast_after_s: float = 1.0
 
     def __post_init__(self) -> None:
         if self.compensation not in COMPENSATIONS:
@@ -214,10 +224,14 @@ class FilterSettings:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0.0):
                 raise ValueError(f"filter.{name} must be a finite number >= 0, got {v}")
-        for name in ("remainder_updates", "attitude_remainder_updates"):
+        for name in ("remainder_updates", "attitude_remainder_updates", "coast_remainder_updates"):
             v = getattr(self, name)
             if not (np.isfinite(v) and 1.0 <= v <= 1e4):
                 raise ValueError(f"filter.{name} must be a number in [1, 10000], got {v}")
+        if not (np.isfinite(self.coast_after_s) and 0.0 < self.coast_after_s <= 1e3):
+            raise ValueError(
+                f"filter.coast_after_s must be a number in (0, 1000] s, got {self.coast_after_s}"
+            )
         if not (np.isfinite(self.fusion_lag_s) and 0.0 <= self.fusion_lag_s <= 10.0):
             raise ValueError(
                 f"filter.fusion_lag_s must be a number in [0, 10] s, got {self.fusion_lag_s}"

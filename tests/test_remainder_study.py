@@ -6,7 +6,13 @@ import json
 import numpy as np
 import pytest
 
-from filters.ekf import LATERAL, SIDESLIP_REMAINDER_UPDATES, VERTICAL, remainder_variance
+from filters.ekf import (
+    COAST_REMAINDER_UPDATES,
+    LATERAL,
+    SIDESLIP_REMAINDER_UPDATES,
+    VERTICAL,
+    remainder_variance,
+)
 from filters.pipeline import run_filter
 from filters.remainder_study import (
     RHO_MAX,
@@ -271,7 +277,8 @@ def test_remainder_cli():
     proc = run_cli("remainder", *SHORT_TACTICAL_ARGS, "--runs", "2", "--window", "30", "--json")
     out = json.loads(proc.stdout)
     assert out["runs"] == 2 and out["left_out"] == []
-    assert (out["remainder_updates"], out["attitude_remainder_updates"]) == (4.0, 40.0)
+    counts = ("remainder_updates", "attitude_remainder_updates", "coast_remainder_updates")
+    assert tuple(out[k] for k in counts) == (4.0, 40.0, 40.0)
     assert set(out["models"]) == {"lateral", "vertical"}  # tactical flies both models
     for m in out["models"].values():
         assert [(w["t0_s"], w["t1_s"]) for w in m["windows"]] == [(0.0, 30.0), (30.0, 60.0)]
@@ -282,3 +289,56 @@ def test_remainder_cli():
     bad = run_cli("remainder", "--scenario", "static", "--runs", "1", check=False)
     assert bad.returncode == 2
     assert "has no vehicle model" in bad.stderr
+
+
+def test_coast_counts_the_remainder_longer_and_holds_after():
+    """Past ``coast_after_s`` without an accepted GPS position the body-velocity
+    updates count the whole remainder ``coast_remainder_updates`` times, and go on
+    doing so for ``coast_hold_s`` after the last coasting update; the update's R
+    carries the count (``sigma^2 + remainder_variance``)."""
+    nf, _, _ = level_filter()
+    nf.coast_hold_s = 8.0
+    nf.vel = np.array([20.0, 0.0, 0.0])
+    nf.body_velocity_log = []
+    fixed = (SIDESLIP_REMAINDER_UPDATES, COAST_REMAINDER_UPDATES)
+    expected = []
+    for t, t_fix, n in (
+        (0.5, 0.0, fixed[0]),  # GPS holds
+        (1.0, 0.0, fixed[0]),  # exactly coast_after_s: not yet
+        (1.2, 0.0, fixed[1]),  # coasting
+        (2.4, 2.2, fixed[1]),  # GPS back, inside the hold (until 9.2 s)
+        (9.1, 9.0, fixed[1]),
+        (9.3, 9.2, fixed[0]),
+    ):
+        nf.t_s, nf.t_last_position_fix = t, t_fix
+        nf.update_sideslip(np.deg2rad(1e-3), 5.0)
+        rec = nf.body_velocity_log[-1]
+        sigma2 = (20.0 * np.tan(np.deg2rad(1e-3))) ** 2
+        expected.append(sigma2 + remainder_variance(rec.remainder, n, 40.0))
+    got = [r.r_m2ps2 for r in nf.body_velocity_log]
+    np.testing.assert_allclose(got, expected, rtol=1e-12)
+    # the coast's count shows in R: the fixed count would have given far less
+    rem = nf.body_velocity_log[2].remainder
+    sigma2 = (20.0 * np.tan(np.deg2rad(1e-3))) ** 2
+    assert got[2] > 1.5 * (sigma2 + remainder_variance(rem, fixed[0], 40.0))
+    assert nf.counters.coast_model_updates == 3
+    with pytest.raises(ValueError, match=r"filter\.coast_after_s must be a number in"):
+        FilterSettings(coast_after_s=0.0)
+    with pytest.raises(ValueError, match=r"filter\.coast_remainder_updates must be"):
+        FilterSettings(coast_remainder_updates=0.0)
+
+
+def test_an_outage_switches_the_count_for_its_length_and_the_hold():
+    """End to end: a short ``tactical`` flight with a 5 s GPS outage from 20 s counts
+    its vehicle-model updates as coasting from 1 s into the outage until 8 s (40
+    updates at 5 Hz) after the GPS is back, both models; without an outage none."""
+    key = "vehicle-model updates counted as coasting"
+    base = ["run.rate_hz=200"]
+    sim = simulate_flight(load_flight("tactical", base), 0)
+    assert run_filter(sim.samples, sim.fixes, sim.config).counts[key] == 0
+    scn = load_flight("tactical", [*base, "gps.outage_start_s=20", "gps.outage_s=5"])
+    sim = simulate_flight(scn, 0)
+    n = run_filter(sim.samples, sim.fixes, sim.config).counts[key]
+    # (5 s - 1 s + 8 s) at 5 Hz, two models; the fixes' 0.1 s spacing and 0.05 s
+    # latency move each end by at most a fix and an update
+    assert abs(n - 2 * 5 * 12) <= 2 * 2, n
