@@ -301,6 +301,7 @@ def test_coast_counts_the_remainder_longer_and_holds_after():
     nf.vel = np.array([20.0, 0.0, 0.0])
     nf.body_velocity_log = []
     fixed = (SIDESLIP_REMAINDER_UPDATES, COAST_REMAINDER_UPDATES)
+    sigma2 = (20.0 * np.tan(np.deg2rad(1e-3))) ** 2
     expected = []
     for t, t_fix, n in (
         (0.5, 0.0, fixed[0]),  # GPS holds
@@ -313,13 +314,11 @@ def test_coast_counts_the_remainder_longer_and_holds_after():
         nf.t_s, nf.t_last_position_fix = t, t_fix
         nf.update_sideslip(np.deg2rad(1e-3), 5.0)
         rec = nf.body_velocity_log[-1]
-        sigma2 = (20.0 * np.tan(np.deg2rad(1e-3))) ** 2
         expected.append(sigma2 + remainder_variance(rec.remainder, n, 40.0))
     got = [r.r_m2ps2 for r in nf.body_velocity_log]
     np.testing.assert_allclose(got, expected, rtol=1e-12)
     # the coast's count shows in R: the fixed count would have given far less
     rem = nf.body_velocity_log[2].remainder
-    sigma2 = (20.0 * np.tan(np.deg2rad(1e-3))) ** 2
     assert got[2] > 1.5 * (sigma2 + remainder_variance(rem, fixed[0], 40.0))
     assert nf.counters.coast_model_updates == 3
     with pytest.raises(ValueError, match=r"filter\.coast_after_s must be a number in"):
