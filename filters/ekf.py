@@ -83,8 +83,10 @@ ATTITUDE_REMAINDER_UPDATES = 40.0
 COAST_REMAINDER_UPDATES = 40.0
 #: Time without an accepted GPS position after which the filter is coasting, s: five
 #: fixes at 5 Hz, so one rejected fix (a glitch) is not a coast. The default of
-#: ``filter.coast_after_s``; a GPS slower than 2 Hz needs a longer one.
+#: ``filter.coast_after_s``.
 COAST_AFTER_S = 1.0
+#: ...or this many intervals of the fixes received, whichever is longer.
+COAST_AFTER_FIXES = 5.0
 
 #: Consecutive fixes after an outage that fail the position gate before the filter is put
 #: on the fix anyway. The first fix after an outage resets position and velocity when it
@@ -425,7 +427,8 @@ class NavFilter:
     coast_remainder_updates, coast_after_s, coast_hold_s : float
         The whole remainder's count in a coast (default
         :data:`COAST_REMAINDER_UPDATES`), the time without an accepted GPS position
-        that makes one (s, default :data:`COAST_AFTER_S`), and how long after the
+        that makes one (s, default :data:`COAST_AFTER_S`; at least
+        :data:`COAST_AFTER_FIXES` fix intervals), and how long after the
         last coasting update the count holds (s; 0 by default, the pipeline passes
         the count's own length at its 5 Hz): :meth:`current_remainder_updates`.
 
@@ -466,6 +469,9 @@ class NavFilter:
             if not (np.isfinite(v) and v >= 0.0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {v}")
         self._coast_until = -np.inf
+        self._t_prev_fix = -np.inf
+        #: Spacing of the last two GPS fixes received, s (NaN before the second).
+        self.fix_interval_s = float("nan")
         self.body_velocity_log: list[BodyVelocityRecord] | None = None
         self.quad_pairs = np.asarray(self.quad_pairs, dtype=int).reshape(-1, 2)
         self.antenna_b_m = np.asarray(self.antenna_b_m, dtype=float).reshape(3)
@@ -1062,6 +1068,10 @@ class NavFilter:
         is not fused: :meth:`reset_to_fix` puts position and velocity on it; so
         does the :data:`GAP_RESET_AFTER_REJECTS`-th fix in a row that fails it.
         """
+        t_fix = self.t_s + dt_fix_s
+        if np.isfinite(self._t_prev_fix) and t_fix > self._t_prev_fix:
+            self.fix_interval_s = t_fix - self._t_prev_fix
+        self._t_prev_fix = t_fix
         cr, _, hp, _ = self.gps_model(self.q, self.w)
         rp = np.diag(np.broadcast_to(np.asarray(pos_sigma_m, dtype=float), 3) ** 2)
         yp = pos_ned_m - (self.pos + cr + self.vel * dt_fix_s)
@@ -1300,14 +1310,19 @@ class NavFilter:
     def current_remainder_updates(self) -> float:
         """The count of the whole remainder a body-velocity update uses now.
 
-        ``coast_remainder_updates`` while coasting (more than ``coast_after_s`` since
-        the last accepted GPS position) and for ``coast_hold_s`` after it: the
-        remainder built up in a coast lasts as long after it as in it. Otherwise
-        ``remainder_updates``.
+        ``coast_remainder_updates`` while coasting (more than ``coast_after_s``, or
+        five intervals of the GPS fixes received, whichever is longer, since the last
+        accepted GPS position: a slow receiver's normal spacing is not a coast) and for
+        ``coast_hold_s`` after it: the remainder built up in a coast lasts as long
+        after it as in it. Otherwise ``remainder_updates``.
         """
-        if self.t_s - self.t_last_position_fix > self.coast_after_s:
+        after = self.coast_after_s
+        if self.fix_interval_s == self.fix_interval_s:  # not NaN
+            after = max(after, COAST_AFTER_FIXES * self.fix_interval_s)
+        coasting = self.t_s - self.t_last_position_fix > after
+        if coasting:
             self._coast_until = self.t_s + self.coast_hold_s
-        if self.t_s < self._coast_until:
+        if coasting or self.t_s < self._coast_until:
             self.counters.coast_model_updates += 1
             return self.coast_remainder_updates
         return self.remainder_updates

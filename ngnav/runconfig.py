@@ -151,8 +151,8 @@ class FilterSettings:
     need, against its truth.
 
     ``coast_remainder_updates`` (>= 1, default 40) replaces ``remainder_updates``
-    while the filter coasts: from ``coast_after_s`` (default 1 s; longer than the
-    GPS fix interval) without an accepted GPS position until
+    while the filter coasts: from ``coast_after_s`` (default 1 s) or five intervals
+    of the GPS fixes received, whichever is longer, without an accepted GPS position until
     ``coast_remainder_updates / 5 Hz`` seconds after the last such update (the
     coast's remainder lasts its count of updates after it). 40 is the persistence
     ``ngnav remainder`` measures through ``uav-survey``'s outage. Setting it equal to

@@ -321,6 +321,16 @@ def test_coast_counts_the_remainder_longer_and_holds_after():
     rem = nf.body_velocity_log[2].remainder
     assert got[2] > 1.5 * (sigma2 + remainder_variance(rem, fixed[0], 40.0))
     assert nf.counters.coast_model_updates == 3
+    # a receiver at 1 Hz: its normal spacing is not a coast, five missed fixes are
+    nf, _, _ = level_filter()
+    for t in (0.0, 1.0, 2.0):
+        nf.t_s = t
+        assert nf.update_gps(np.zeros(3), np.zeros(3), np.ones(3), 0.1).pos_accepted
+    assert nf.fix_interval_s == 1.0 and nf.t_last_position_fix == 2.0
+    nf.vel = np.array([20.0, 0.0, 0.0])
+    for t, n in ((3.5, fixed[0]), (6.9, fixed[0]), (7.1, fixed[1])):
+        nf.t_s = t
+        assert nf.current_remainder_updates() == n, t
     with pytest.raises(ValueError, match=r"filter\.coast_after_s must be a number in"):
         FilterSettings(coast_after_s=0.0)
     with pytest.raises(ValueError, match=r"filter\.coast_remainder_updates must be"):
