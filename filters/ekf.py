@@ -1317,7 +1317,7 @@ class NavFilter:
         after it as in it. Otherwise ``remainder_updates``.
         """
         after = self.coast_after_s
-        if self.fix_interval_s == self.fix_interval_s:  # not NaN
+        if not math.isnan(self.fix_interval_s):
             after = max(after, COAST_AFTER_FIXES * self.fix_interval_s)
         coasting = self.t_s - self.t_last_position_fix > after
         if coasting:
