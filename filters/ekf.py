@@ -1314,7 +1314,8 @@ class NavFilter:
         five intervals of the GPS fixes received, whichever is longer, since the last
         accepted GPS position: a slow receiver's normal spacing is not a coast) and for
         ``coast_hold_s`` after it: the remainder built up in a coast lasts as long
-        after it as in it. Otherwise ``remainder_updates``.
+        after it as in it. Otherwise ``remainder_updates``. Called once per update: a
+        coasting call is counted (``counters.coast_model_updates``) and extends the hold.
         """
         after = self.coast_after_s
         if not math.isnan(self.fix_interval_s):

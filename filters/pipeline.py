@@ -1052,7 +1052,7 @@ def run_filter(
     progress : callable, optional
         Called with the fraction done (0..1) now and then.
     body_velocity_log : list, optional
-        Every zero-sideslip update is appended to it as a
+        Every sideslip and angle-of-attack update is appended to it as a
         :class:`filters.ekf.BodyVelocityRecord` (what ``ngnav remainder`` measures).
 
     Raises

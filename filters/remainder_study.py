@@ -6,9 +6,10 @@ the velocity along the wind-normal axis ``n_b(alpha)`` in the same way) and adds
 variance of what the linearisation leaves out (the remainder, second order in the
 attitude, velocity and angle-of-attack errors) to R, counted
 ``filter.remainder_updates`` times and its attitude-product part
-``filter.attitude_remainder_updates`` times: the number of consecutive updates that
-share one value of it. Those counts are properties of a flight, not of the filter;
-this module measures them on simulated flights.
+``filter.attitude_remainder_updates`` times (the whole ``filter.coast_remainder_updates``
+times in a GPS coast): the number of consecutive updates that share one value of
+it. Those counts are properties of a flight, not of the filter; this module
+measures them on simulated flights.
 
 At every such update of a run (:class:`filters.ekf.BodyVelocityRecord`) the truth
 gives the remainder actually left (:func:`realized_remainder`; the lateral model's
