@@ -88,6 +88,16 @@ COAST_AFTER_S = 1.0
 #: ...or this many intervals of the fixes received, whichever is longer.
 COAST_AFTER_FIXES = 5.0
 
+#: Blocks by which the lift law's Jacobian load lags the load the angle is predicted
+#: with. The angle's sensitivity to ``K`` is the load ``u``; taken from this block, its
+#: noise is the noise in the predicted angle, and the update's gain times its innovation
+#: then has a mean (``-K Var(u)`` along ``u``): errors in variables, which push the offset
+#: and ``K`` apart along the direction a steady load cannot see (``uav-survey``, 12 runs:
+#: +0.58 / -0.53 sigma at 540 s; README "the lift law's Jacobian load"). The pipeline's
+#: load is extrapolated from this block and the last one, so two blocks back is the
+#: nearest load whose noise is independent of it.
+LIFT_JACOBIAN_LAG_BLOCKS = 2
+
 #: Consecutive fixes after an outage that fail the position gate before the filter is put
 #: on the fix anyway. The first fix after an outage resets position and velocity when it
 #: passes the gate (a glitch then is one fix off, rejected); but a coast that ended more
@@ -523,6 +533,9 @@ class NavFilter:
         self.aoa_b = 0.0
         self.aoa_k = self.aoa_lift_k_m  # the lift law's K estimate, m
         self._lift_u = 0.0  # n_w / V^2 of the last block, 1/m
+        # the Jacobian's u: LIFT_JACOBIAN_LAG_BLOCKS blocks older (errors in variables)
+        self._lift_u_jac = 0.0
+        self._lift_u_recent: list[float] = []
         self._lift_w = 1.0  # the lift-off blend w(V)
         self._lift_axis = np.array([0.0, 0.0, -1.0])  # n_w = _lift_axis . f (FRD)
         self._lift_dw = 0.0  # dw/dV of the lift-off blend, s/m
@@ -605,6 +618,8 @@ class NavFilter:
         self.aoa_b = float(aoa_rad) if self.layout.n_aoa else 0.0
         self.aoa_k = self.aoa_lift_k_m
         self._lift_u, self._lift_w = 0.0, 1.0
+        self._lift_u_jac = 0.0
+        self._lift_u_recent = []
         ia = self.layout.aoa
         p[ia, ia] = np.diag(
             [self.aoa_prior_sigma_rad**2, self.aoa_lift_k_sigma_m**2][: ia.stop - ia.start]
@@ -1120,7 +1135,7 @@ class NavFilter:
 
     def _aoa_gradient(self) -> np.ndarray:
         """d alpha / d(AOA states): ``w [1, u]`` (or ``[w]`` with the offset alone)."""
-        return self._lift_w * np.array([1.0, self._lift_u])[: self.layout.n_aoa]
+        return self._lift_w * np.array([1.0, self._lift_u_jac])[: self.layout.n_aoa]
 
     def aoa_jacobian(self, vel_ned_mps: np.ndarray) -> np.ndarray:
         """``d alpha / d(error state)`` (n,) at the velocity ``vel_ned_mps`` (NED, m/s).
@@ -1129,7 +1144,9 @@ class NavFilter:
         (:meth:`set_load`), ``-2 w K u v^T / V^2`` for the velocity and
         ``-w K [sin a, 0, -cos a] / V^2`` for the specific-force bias; through the
         lift-off blend ``w(V)``, ``w'(V) (alpha_b + K u) v^T / V``. Zero without the
-        ``AOA`` state.
+        ``AOA`` state. The ``u`` here is the load :data:`LIFT_JACOBIAN_LAG_BLOCKS`
+        blocks back, whose noise is independent of the predicted angle's (equal to the
+        current one under a steady load).
         """
         j = np.zeros(self.layout.n)
         if not self.layout.n_aoa:
@@ -1137,7 +1154,7 @@ class NavFilter:
         ia = self.layout.aoa.start
         j[ia] = self._lift_w
         if self.layout.n_aoa == 2:
-            j[ia + 1] = self._lift_w * self._lift_u
+            j[ia + 1] = self._lift_w * self._lift_u_jac
         speed2 = float(vel_ned_mps @ vel_ned_mps)
         if speed2 <= 1.0:
             return j
@@ -1146,7 +1163,7 @@ class NavFilter:
             j[VEL] += self._lift_dw * lift * vel_ned_mps / np.sqrt(speed2)
         if self.aoa_k > 0.0:
             wk = self._lift_w * self.aoa_k / speed2
-            j[VEL] += -2.0 * wk * self._lift_u * vel_ned_mps
+            j[VEL] += -2.0 * wk * self._lift_u_jac * vel_ned_mps
             j[B_F] += -wk * self._lift_axis
         return j
 
@@ -1206,7 +1223,8 @@ class NavFilter:
         ``u = n_w / V^2`` with the wind-frame normal load ``n_w = sin(a) f_x - cos(a) f_z``
         at the current angle of attack and ``V = |v|`` (calm air), and the lift-off blend
         ``w(V)``. The angle of attack so depends on the velocity and force-bias states
-        too; :meth:`body_velocity_model` carries both in its Jacobian.
+        too; :meth:`body_velocity_model` carries both in its Jacobian, which takes ``u``
+        from :data:`LIFT_JACOBIAN_LAG_BLOCKS` calls back (errors in variables).
         """
         speed = self._speed()
         a = self.aoa  # the angle n_w is taken at: the last block's
@@ -1218,6 +1236,11 @@ class NavFilter:
             self._lift_axis = np.array([math.sin(a), 0.0, -math.cos(a)])  # n_w = this . f
             n_w = self._lift_axis @ f_b_mps2
             self._lift_u = float(n_w) / speed**2
+            recent = self._lift_u_recent
+            recent.append(self._lift_u)
+            if len(recent) > LIFT_JACOBIAN_LAG_BLOCKS + 1:
+                del recent[0]
+            self._lift_u_jac = recent[0]
 
     def body_velocity_model(
         self, q_nb: np.ndarray, vel_ned_mps: np.ndarray, axis: int = LATERAL, aoa_rad: float = 0.0
