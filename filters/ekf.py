@@ -93,9 +93,10 @@ COAST_AFTER_FIXES = 5.0
 #: noise is the noise in the predicted angle, and the update's gain times its innovation
 #: then has a mean (``-K Var(u)`` along ``u``): errors in variables, which push the offset
 #: and ``K`` apart along the direction a steady load cannot see (``uav-survey``, 12 runs:
-#: +0.58 / -0.53 sigma at 540 s; README "the lift law's Jacobian load"). The pipeline's
-#: load is extrapolated from this block and the last one, so two blocks back is the
-#: nearest load whose noise is independent of it.
+#: +0.58 / -0.53 sigma at 540 s, -0.00 / +0.08 with the lag; README "the lift law's
+#: Jacobian takes the load two blocks back"). The pipeline's load is extrapolated from
+#: this block and the last one, so two blocks back is the nearest load whose noise is
+#: independent of it.
 LIFT_JACOBIAN_LAG_BLOCKS = 2
 
 #: Consecutive fixes after an outage that fail the position gate before the filter is put
