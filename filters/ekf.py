@@ -209,7 +209,8 @@ class BodyVelocityRecord(NamedTuple):
     remainder : Remainder
         The second-order remainder's mean and variances at the update.
     r_m2ps2 : float
-        The update's R: the sigma's variance plus the remainder as counted, m^2/s^2.
+        The update's R: the sigma's variance plus the remainder as counted (and, for the
+        angle-of-attack model, the load's noise and the lift-off blend's), m^2/s^2.
     accepted : bool
         Whether the update passed its gate.
     """
@@ -537,6 +538,7 @@ class NavFilter:
         # the Jacobian's u: LIFT_JACOBIAN_LAG_BLOCKS blocks older (errors in variables)
         self._lift_u_jac = 0.0
         self._lift_u_recent: list[float] = []
+        self._lift_u_var = 0.0  # the load noise's variance in u, 1/m^2
         self._lift_w = 1.0  # the lift-off blend w(V)
         self._lift_axis = np.array([0.0, 0.0, -1.0])  # n_w = _lift_axis . f (FRD)
         self._lift_dw = 0.0  # dw/dV of the lift-off blend, s/m
@@ -621,6 +623,7 @@ class NavFilter:
         self._lift_u, self._lift_w = 0.0, 1.0
         self._lift_u_jac = 0.0
         self._lift_u_recent = []
+        self._lift_u_var = 0.0
         ia = self.layout.aoa
         p[ia, ia] = np.diag(
             [self.aoa_prior_sigma_rad**2, self.aoa_lift_k_sigma_m**2][: ia.stop - ia.start]
@@ -1170,11 +1173,26 @@ class NavFilter:
 
     @property
     def aoa_sigma(self) -> float:
-        """1-sigma of :attr:`aoa`, rad: :meth:`aoa_jacobian`'s linear part plus the
-        lift-off blend's beyond it (:meth:`blend_remainder_var`); 0 without the state."""
+        """1-sigma of :attr:`aoa`, rad: :meth:`aoa_jacobian`'s linear part, the lift-off
+        blend's beyond it (:meth:`blend_remainder_var`) and the load's noise
+        (:meth:`set_load`); 0 without the state."""
         j = self.aoa_jacobian(self.vel)
         lift = self._unblended_aoa()
-        return float(np.sqrt(j @ self.P @ j + lift * lift * self.blend_remainder_var()))
+        var = j @ self.P @ j + lift * lift * self.blend_remainder_var() + self._load_angle_var()
+        return float(np.sqrt(var))
+
+    def _load_angle_var(self) -> float:
+        """Variance of the angle of attack from the load's noise, ``(w K)^2 Var(u)``, rad^2."""
+        wk = self._lift_w * self.aoa_k
+        return wk * wk * self._lift_u_var
+
+    def load_noise_var(self, q_nb: np.ndarray, vel_ned_mps: np.ndarray, aoa_rad: float) -> float:
+        """The angle-of-attack model's variance from the load's noise at a given state,
+        ``(dv/dalpha)^2 (w K)^2 Var(u)`` (m^2/s^2), ``dv/dalpha = -(C t_b) . v``: what its R
+        adds (:meth:`set_load`); 0 without a load covariance."""
+        _, t_b = constraint_axes(VERTICAL, aoa_rad)
+        dv_da = -float((dcm_from_quat(q_nb) @ t_b) @ vel_ned_mps)
+        return dv_da * dv_da * self._load_angle_var()
 
     def _speed(self) -> float:
         """``|v|`` of the nominal velocity, m/s (on floats: it runs every block)."""
@@ -1218,7 +1236,7 @@ class NavFilter:
         mean = float(_BLEND_W @ r)
         return max(float(_BLEND_W @ (r * r)) - mean * mean, 0.0)
 
-    def set_load(self, f_b_mps2: np.ndarray) -> None:
+    def set_load(self, f_b_mps2: np.ndarray, load_cov: np.ndarray | None = None) -> None:
         """Feed the lift law the block's specific force (FRD, m/s^2, biases removed).
 
         ``u = n_w / V^2`` with the wind-frame normal load ``n_w = sin(a) f_x - cos(a) f_z``
@@ -1226,6 +1244,12 @@ class NavFilter:
         ``w(V)``. The angle of attack so depends on the velocity and force-bias states
         too; :meth:`body_velocity_model` carries both in its Jacobian, which takes ``u``
         from :data:`LIFT_JACOBIAN_LAG_BLOCKS` calls back (errors in variables).
+
+        ``load_cov`` (3, 3), (m/s^2)^2, FRD, is the covariance of the noise in
+        ``f_b_mps2`` (the pipeline's: the block means' ``feature_cov / k``, weighted as its
+        extrapolation weights them). The angle carries it, ``Var(u) = a^T load_cov a / V^4``
+        along the lift axis ``a``: the angle-of-attack model's R and :attr:`aoa_sigma`
+        add it. None: a noise-free load.
         """
         speed = self._speed()
         a = self.aoa  # the angle n_w is taken at: the last block's
@@ -1237,6 +1261,8 @@ class NavFilter:
             self._lift_axis = np.array([math.sin(a), 0.0, -math.cos(a)])  # n_w = this . f
             n_w = self._lift_axis @ f_b_mps2
             self._lift_u = float(n_w) / speed**2
+            ax = self._lift_axis
+            self._lift_u_var = 0.0 if load_cov is None else float(ax @ load_cov @ ax) / speed**4
             recent = self._lift_u_recent
             recent.append(self._lift_u)
             if len(recent) > LIFT_JACOBIAN_LAG_BLOCKS + 1:
@@ -1315,6 +1341,8 @@ class NavFilter:
         if axis == VERTICAL:
             _, t_b = constraint_axes(VERTICAL, self.aoa)
             dv_da = -float((dcm_from_quat(self.q) @ t_b) @ self.vel)
+            # the predicted angle carries the load's noise: w K du
+            var += dv_da * dv_da * self._load_angle_var()
             blend_var = self.blend_remainder_var()
             if blend_var > 0.0:
                 # the blend beyond its linear term moves the angle, and the velocity with it

@@ -680,6 +680,8 @@ class Pipeline:
         self._aoa_sigma = np.deg2rad(cfg.filter.aoa_sigma_deg)
         self._t_last_slip = -np.inf
         self._f_load_prev: np.ndarray | None = None
+        self._k_load_prev = 1  # samples measured in the block f_load_prev came from
+        self._load_noise_cov = nf.noise.feature_cov[3:6, 3:6].copy()
         self._t_last_reopen = -np.inf
         self._wd_smooth = np.zeros(3)
         self._smooth_gain = min(1.0, 1.0 / (WDOT_SMOOTHING_S * cfg.filter.rate_hz))
@@ -826,10 +828,16 @@ class Pipeline:
             # the block mean lags the block end by half a block: extrapolate it there
             # (measured: the lift law on tactical's 100 Hz block means was up to 0.07 deg
             # behind the truth in the roll-ins, exact on the block-end force)
+            # (its noise: the block means' feature_cov / k, as the weights combine them)
             f_mean = self._last_mean[3:6] - nf.bias[3:6]
-            f_prev = self._f_load_prev if self._f_load_prev is not None else f_mean
-            nf.set_load(1.5 * f_mean - 0.5 * f_prev)
-            self._f_load_prev = f_mean
+            k_now = good.shape[0]
+            if self._f_load_prev is None:
+                f_load, w2 = f_mean, 1.0 / k_now
+            else:
+                f_load = 1.5 * f_mean - 0.5 * self._f_load_prev
+                w2 = 2.25 / k_now + 0.25 / self._k_load_prev
+            nf.set_load(f_load, load_cov=w2 * self._load_noise_cov)
+            self._f_load_prev, self._k_load_prev = f_mean, k_now
         fixes = []
         while self._pending and self._pending[0][0] == i1:
             fixes.append(self._pending.pop(0)[2])
@@ -863,12 +871,11 @@ class Pipeline:
                         v_b = dcm_from_quat(truth.q_nb[i1]).T @ v_true
                         aoa_true = float(np.arctan2(v_b[2], v_b[0])) if nf.layout.n_aoa else 0.0
                         _, hs = nf.body_velocity_model(truth.q_nb[i1], v_true, axis, aoa_true)
+                        r = sigma_v**2
+                        if axis == VERTICAL:  # the load's noise is there at the truth too
+                            r += nf.load_noise_var(truth.q_nb[i1], v_true, aoa_true)
                         _, p_bound = kf_update(
-                            np.zeros(nf.layout.n),
-                            p_bound,
-                            np.zeros(1),
-                            np.array([[sigma_v**2]]),
-                            hs,
+                            np.zeros(nf.layout.n), p_bound, np.zeros(1), np.array([[r]]), hs
                         )
         self._p_bound = p_bound
         nf.check_covariance("block", full=bool(fixes) or e % self._full_check_every == 0)
