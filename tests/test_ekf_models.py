@@ -221,6 +221,16 @@ def test_angle_of_attack_model_counts_the_loads_noise():
     assert r1 > r0
 
 
+def test_set_load_survives_a_diverged_speed():
+    """A filter whose velocity has run away (the array alone, no GPS) still takes its
+    load: the covariance check, not an OverflowError in the law, reports the
+    divergence."""
+    nf = _lift_law_filter()
+    nf.vel = np.array([1e120, 0.0, 0.0])
+    nf.set_load(np.array([0.0, 0.0, -9.81]), load_cov=np.eye(3))
+    assert nf._lift_u_var == 0.0 and abs(nf._lift_u) < 1e-200
+
+
 def _noisy_load_run(seed: int, n_updates: int, sigma_f_mps2: float) -> tuple[float, float]:
     """One airframe's lift law learnt from ``n_updates`` angle-of-attack updates, five
     noisy block loads before each (level, 60 m/s, attitude and velocity known; the load
