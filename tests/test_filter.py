@@ -299,9 +299,9 @@ def test_consistency_small_monte_carlo(monte_carlo):
 @pytest.mark.xfail(
     strict=True,
     reason="known miss (README): tactical, 50 runs, whole run pos / vel / att / rate / all / "
-    "aoa 90.2 / 93.9 / 96.8 / 92.4 / 78.2 / 91.0 % inside; from 10 s 89.5 / 94.3 / 96.8 / "
-    "92.8 / 81.3 / 95.1 % (the joint is pessimistic: 19.7 % of epochs below); uav-survey "
-    "97.4 / 91.5 / 92.1 / 92.3 / 88.6 / 95.8 %. A consistent filter's 5th percentiles "
+    "aoa 90.3 / 93.9 / 96.9 / 93.1 / 77.4 / 90.6 % inside; from 10 s 89.5 / 94.3 / 96.9 / "
+    "93.6 / 80.4 / 94.9 % (the joint is pessimistic: 20.9 % of epochs below); uav-survey "
+    "97.4 / 91.5 / 92.1 / 92.3 / 88.5 / 95.8 %. A consistent filter's 5th percentiles "
     "(--reference; tactical at 4b14431): tactical's position / joint 83.7 / 88.4 %, "
     "uav-survey's velocity / attitude / joint 92.1 / 93.2 / 90.8 %",
 )
