@@ -302,7 +302,7 @@ def test_consistency_small_monte_carlo(monte_carlo):
     "aoa 90.3 / 93.9 / 96.9 / 93.1 / 77.4 / 90.6 % inside; from 10 s 89.5 / 94.3 / 96.9 / "
     "93.6 / 80.4 / 94.9 % (the joint is pessimistic: 20.9 % of epochs below); uav-survey "
     "97.4 / 91.5 / 92.1 / 92.3 / 88.5 / 95.8 %. A consistent filter's 5th percentiles "
-    "(--reference; tactical at 4b14431): tactical's position / joint 83.7 / 88.4 %, "
+    "(--reference; tactical at 1c53c61): tactical's position / joint 83.9 / 88.0 %, "
     "uav-survey's velocity / attitude / joint 92.1 / 93.2 / 90.8 %",
 )
 def test_target_is_met(monte_carlo):
