@@ -65,6 +65,9 @@ REOPEN_RATE_SIGMA_RPS = float(np.deg2rad(2.0))
 REOPEN_MIN_INTERVAL_S = 10.0
 #: Rate of the zero-sideslip pseudo-measurement (when configured), Hz.
 SIDESLIP_RATE_HZ = 5.0
+#: The lift law's load, extrapolated from two block means to the block end:
+#: ``1.5 f_k - 0.5 f_k-1`` (a mean lags its block's end by half a block).
+LOAD_W_NOW, LOAD_W_PREV = 1.5, -0.5
 #: GPS velocities rejected in a row after which the vehicle model (sideslip and angle
 #: of attack) pauses until one is accepted again. A state the velocity fixes contradict
 #: has a covariance that no longer describes its errors, and a tight constraint fused
@@ -834,8 +837,8 @@ class Pipeline:
             if self._f_load_prev is None:
                 f_load, w2 = f_mean, 1.0 / k_now
             else:
-                f_load = 1.5 * f_mean - 0.5 * self._f_load_prev
-                w2 = 2.25 / k_now + 0.25 / self._k_load_prev
+                f_load = LOAD_W_NOW * f_mean + LOAD_W_PREV * self._f_load_prev
+                w2 = LOAD_W_NOW**2 / k_now + LOAD_W_PREV**2 / self._k_load_prev
             nf.set_load(f_load, load_cov=w2 * self._load_noise_cov)
             self._f_load_prev, self._k_load_prev = f_mean, k_now
         fixes = []
