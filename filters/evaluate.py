@@ -71,6 +71,10 @@ def run_errors(est: Estimates, truth: FlightTruth) -> RunErrors:
     )
 
 
+#: The issue's consistency target: each block's run-averaged statistic inside its 95 %
+#: bounds on at least this share of epochs.
+TARGET_SHARE = 0.9
+
 #: Below this speed the truth's angle of attack is not defined (m/s).
 AOA_MIN_SPEED_MPS = 5.0
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from filters.evaluate import chi2_bounds
+from filters.evaluate import TARGET_SHARE, chi2_bounds
 
 #: Replicas of the consistent run set per block (the percentiles' resolution).
 DEFAULT_REPLICAS = 200
@@ -148,7 +148,7 @@ def consistent_share(
     return ShareReference(
         float(np.median(shares)),
         float(np.percentile(shares, 5)),
-        float(np.mean(shares < 0.9)),
+        float(np.mean(shares < TARGET_SHARE)),
         corr_time,
         replicas,
     )

@@ -383,6 +383,26 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _print_sets(rows: list[dict], meeting: int) -> None:
+    """The disjoint run sets' shares inside, one line per set (``--sets``)."""
+    names = next((list(r["share_inside"]) for r in rows if "share_inside" in r), [])
+    print(
+        f"  each set of runs on its own: % of epochs inside; {meeting} of {len(rows)} sets "
+        "have every block >= 90 %"
+    )
+    print(
+        "    runs      "
+        + " ".join(f"{n.replace('NEES ', '').replace('NIS ', ''):>9s}" for n in names)
+    )
+    for r in rows:
+        label = f"{r['first_run']}-{r['first_run'] + r['runs'] - 1}" if r["runs"] else "none"
+        cells = [f"{100 * r['share_inside'][n]:9.1f}" for n in names] if r["runs"] else []
+        print(f"    {label:9s} " + " ".join(cells))
+        if "share_inside_from" in r:
+            cells = [f"{100 * r['share_inside_from'][n]:9.1f}" for n in names]
+            print("      from   " + " ".join(cells))
+
+
 def cmd_consistency(args: argparse.Namespace) -> int:
     from filters.experiments import consistency
 
@@ -396,6 +416,7 @@ def cmd_consistency(args: argparse.Namespace) -> int:
         profile_s=args.profile,
         from_s=args.from_s,
         reference=args.reference,
+        sets=args.sets,
     )
     if args.json:
         print(json.dumps(out, indent=2))
@@ -423,6 +444,8 @@ def cmd_consistency(args: argparse.Namespace) -> int:
                     f"5th percentile {100 * ref['p05']:5.1f} %, below 90 % in "
                     f"{100 * ref['prob_below_90']:4.1f} % of {ref['replicas']} run sets"
                 )
+    if "sets" in out:
+        _print_sets(out["sets"], out["sets_meeting_target"])
     print(f"  median attitude RMS over runs: {out['att_rms_deg_median']:.3f} deg")
     for d in out["diverged"]:
         print(f"  run {d['run']} diverged and is left out: {d['reason']}")
@@ -597,6 +620,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also print the share a consistent filter would reach on each block, from the "
         "statistic's correlation in time (filters.share_reference; slower)",
+    )
+    p.add_argument(
+        "--sets",
+        type=int,
+        default=1,
+        metavar="K",
+        help="run K disjoint sets of --runs runs and also print each set's shares on its "
+        "own: how often the target holds on a fresh draw (default: %(default)s)",
     )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_consistency)

@@ -1,0 +1,68 @@
+"""``ngnav consistency --sets``: disjoint run sets, each judged as the target judges one."""
+
+import json
+
+import numpy as np
+import pytest
+
+from filters.evaluate import chi2_bounds
+from filters.experiments import consistency, set_shares
+from tests.helpers import SHORT_TACTICAL_ARGS, run_cli
+
+
+def _result(run: int, pos_nees: np.ndarray) -> dict:
+    """The parts of one Monte Carlo run's record that the share counts read."""
+    n = pos_nees.shape[0]
+    t = np.arange(n, dtype=float)
+    return {
+        "run": run,
+        "nees": {"pos": pos_nees},
+        "t_s": t,
+        "nis_pos": np.full(n, 3.0),
+        "nis_vel": np.full(n, 3.0),
+        "t_fix_s": t,
+        "rate_dim": 0,
+    }
+
+
+def test_each_set_is_judged_on_its_own_runs_and_bounds():
+    """Runs 0-2 sit at the statistic's mean (every epoch inside), runs 3-5 at ten
+    times it in the first half of the epochs: set 1 is inside on half its epochs, set
+    0 on all; a diverged run (5, absent) leaves set 1 with two runs, judged against
+    the two-run bounds. Set membership follows the run index, not list order."""
+    n = 40
+    high = np.where(np.arange(n) < n // 2, 30.0, 3.0)
+    results = [_result(4, high), _result(0, np.full(n, 3.0)), _result(3, high)]
+    results += [_result(1, np.full(n, 3.0)), _result(2, np.full(n, 3.0))]
+    rows = set_shares(results, {"pos": 3}, per_set=3, sets=3)
+    assert [r["first_run"] for r in rows] == [0, 3, 6]
+    assert [r["runs"] for r in rows] == [3, 2, 0]
+    assert rows[0]["share_inside"]["NEES pos"] == 1.0
+    assert 30.0 > chi2_bounds(3, 2)[1]
+    assert rows[1]["share_inside"]["NEES pos"] == 0.5
+    assert rows[0]["share_inside"]["NIS gps pos"] == 1.0
+    assert "share_inside" not in rows[2]
+
+
+def test_sets_must_be_positive():
+    from ngnav.flight_scenario import load_flight
+
+    with pytest.raises(ValueError, match="sets must be at least 1"):
+        consistency(load_flight("tactical"), runs=1, sets=0)
+
+
+def test_cli_sets_repeat_a_single_set_exactly():
+    """``ngnav consistency --runs 1 --sets 2`` as a real subprocess: set 0 is run 0,
+    so its shares equal those of ``--runs 1`` (run 0 alone) to the last digit; set 1
+    is run 1; ``blocks`` then average both runs."""
+    args = ("consistency", *SHORT_TACTICAL_ARGS, "--workers", "1", "--json")
+    one = json.loads(run_cli(*args, "--runs", "1").stdout)
+    two = json.loads(run_cli(*args, "--runs", "1", "--sets", "2").stdout)
+    assert two["runs"] == 2 and one["runs"] == 1
+    s0, s1 = two["sets"]
+    assert (s0["first_run"], s0["runs"], s1["first_run"], s1["runs"]) == (0, 1, 1, 1)
+    assert s0["share_inside"] == {k: v["share_inside"] for k, v in one["blocks"].items()}
+    assert s1["share_inside"] != s0["share_inside"]
+    meeting = sum(all(v >= 0.9 for v in s["share_inside"].values()) for s in two["sets"])
+    assert two["sets_meeting_target"] == meeting
+    assert two["blocks"]["NEES all"]["lower"] == pytest.approx(chi2_bounds(12, 2)[0])
