@@ -12,6 +12,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from filters.control import fix_noise, perfect_array_control
 from filters.ekf import CovarianceError
 from filters.evaluate import (
     TARGET_SHARE,
@@ -29,6 +30,7 @@ from filters.gps_only import run_gps_only
 from filters.pipeline import RunResult, run_filter
 from filters.share_reference import consistent_share
 from ngnav.flight_scenario import FlightScenario
+from ngnav.geodesy import LocalTangentPlane
 from ngnav.simulate import SimulatedRun, simulate_flight
 
 #: The configurations of ``ngnav evaluate``, in table order.
@@ -267,6 +269,11 @@ def _one_run(scn: FlightScenario, i: int, method: str) -> dict:
     ne_aoa = aoa_nees(res.estimates, sim.truth)
     if ne_aoa is not None:
         ne["aoa"] = ne_aoa.astype(np.float32)
+    cfg = sim.config
+    ltp = LocalTangentPlane(cfg.lat0_deg, cfg.lon0_deg, cfg.alt0_m)
+    control = perfect_array_control(
+        sim.fixes, fix_noise(sim.fixes, sim.truth, ltp, cfg.antenna_b_m), sim.glitched
+    )
     inn = res.innovations
     keep = np.ones(inn.t_s.shape, dtype=bool)
     for tg in sim.fixes.t_s[sim.glitched]:
@@ -281,6 +288,9 @@ def _one_run(scn: FlightScenario, i: int, method: str) -> dict:
         "rate_nis": res.rate_nis,
         "rate_t_s": res.rate_nis_t_s,
         "rate_dim": res.rate_dim,
+        "control_pos": control.nees_pos,
+        "control_vel": control.nees_vel,
+        "control_t_s": control.t_s,
         "att_rms_deg": float(np.rad2deg(np.sqrt(np.mean(np.sum(errs.att_ned_rad**2, axis=1))))),
     }
 
@@ -350,6 +360,17 @@ def _blocks(
     return blocks, averages
 
 
+def _control_blocks(rs: list[dict], runs: int, from_s: float | None = None) -> dict:
+    """The perfect-array control's position and velocity NEES (:mod:`filters.control`)
+    over the runs, from ``from_s`` s on, as :func:`_block` summarises a block."""
+    out = {}
+    for name in ("pos", "vel"):
+        key = f"control_{name}"
+        per_run = [r[key] if from_s is None else r[key][r["control_t_s"] >= from_s] for r in rs]
+        out[name] = _block(per_run, 3, runs)[0]
+    return out
+
+
 def nees_profile(t_s: np.ndarray, averages: dict[str, np.ndarray], window_s: float) -> list[dict]:
     """Mean of each run-averaged NEES block over consecutive windows of ``window_s`` s.
 
@@ -401,6 +422,9 @@ def consistency(
     spread, from the statistic's correlation in time (measured with other jobs on the
     2 cores: about 6 min added to ``tactical``'s 50 runs with ``from_s``, 13 min to
     ``uav-survey``'s).
+    ``control`` (and ``control_from``) is the perfect-array control's position and
+    velocity NEES on the same fixes (:mod:`filters.control`): the criterion's reading,
+    on this draw, of a filter consistent by construction.
     ``sets`` > 1 runs ``sets`` disjoint sets of ``runs`` runs (run indices
     ``0 .. sets * runs - 1``, set ``j`` the ``j``-th ``runs`` of them) and adds
     ``sets``: each set judged on its own as the 50-run target judges one
@@ -452,8 +476,10 @@ def consistency(
     if "aoa" in results[0]["nees"]:
         dims["aoa"] = 1  # the angle-of-attack state (NaN where the truth has none)
     out["blocks"], averages = _blocks(results, dims, runs, reference)
+    out["control"] = _control_blocks(results, runs)
     if from_s is not None:
         out["blocks_from"] = _blocks(results, dims, runs, reference, from_s)[0]
+        out["control_from"] = _control_blocks(results, runs, from_s)
     if profile_s is not None:
         out["profile"] = nees_profile(results[0]["t_s"], averages, profile_s)
     if sets > 1:
@@ -478,7 +504,9 @@ def set_shares(
     Set ``j`` holds the runs with indices ``j * per_set .. (j + 1) * per_set - 1``
     that did not diverge (``runs`` says how many), judged against the bounds for its
     own run count. Each row: ``set``, ``first_run``, ``runs``, ``share_inside``
-    (block name to share, 0-1) and, with ``from_s``, ``share_inside_from``.
+    (block name to share, 0-1), ``control_share_inside`` (the perfect-array control's
+    ``pos`` and ``vel``, :mod:`filters.control`) and, with ``from_s``, both again
+    from then on (``share_inside_from``, ``control_share_inside_from``).
     """
     rows = []
     for j in range(sets):
@@ -488,11 +516,13 @@ def set_shares(
         if not members:
             rows.append(row)
             continue
-        blocks = _blocks(members, dims, len(members), False)[0]
-        row["share_inside"] = {k: v["share_inside"] for k, v in blocks.items()}
-        if from_s is not None:
-            blocks = _blocks(members, dims, len(members), False, from_s)[0]
-            row["share_inside_from"] = {k: v["share_inside"] for k, v in blocks.items()}
+        for key, since in (("", None), ("_from", from_s)):
+            if key and from_s is None:
+                continue
+            blocks = _blocks(members, dims, len(members), False, since)[0]
+            row[f"share_inside{key}"] = {k: v["share_inside"] for k, v in blocks.items()}
+            control = _control_blocks(members, len(members), since)
+            row[f"control_share_inside{key}"] = {k: v["share_inside"] for k, v in control.items()}
         rows.append(row)
     return rows
 

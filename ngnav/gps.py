@@ -61,6 +61,22 @@ class GpsFixes:
         return GpsFixes(**{f.name: getattr(self, f.name)[keep] for f in fields(self)})
 
 
+def antenna_truth(
+    truth: FlightTruth, idx: np.ndarray, antenna_b_m: np.ndarray | tuple[float, float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The antenna's true position and velocity at the truth's samples ``idx`` (M,).
+
+    ``antenna_b_m`` (3,) is the antenna from the array reference point, FRD, m.
+    Returns position (M, 3), NED, m, and velocity (M, 3), NED, m/s: the body
+    origin's plus ``C r`` and ``C (w x r)``.
+    """
+    r = np.asarray(antenna_b_m, dtype=float)
+    c = dcm_from_quat(truth.q_nb[idx])
+    pos = truth.pos_ned_m[idx] + c @ r
+    vel = truth.vel_ned_mps[idx] + np.einsum("tij,tj->ti", c, np.cross(truth.omega_b_rps[idx], r))
+    return pos, vel
+
+
 @dataclass(frozen=True)
 class GpsReceiverModel:
     """Simulated receiver: white errors at the stated 1-sigma, outages, glitches.
@@ -117,12 +133,7 @@ class GpsReceiverModel:
             keep &= ~((t[idx] >= start) & (t[idx] < start + dur))
         idx = idx[keep]
         m = idx.shape[0]
-        r = np.asarray(self.antenna_b_m, dtype=float)
-        c = dcm_from_quat(truth.q_nb[idx])
-        pos = truth.pos_ned_m[idx] + c @ r
-        vel = truth.vel_ned_mps[idx] + np.einsum(
-            "tij,tj->ti", c, np.cross(truth.omega_b_rps[idx], r)
-        )
+        pos, vel = antenna_truth(truth, idx, self.antenna_b_m)
         sig = np.array([self.h_acc_m, self.h_acc_m, self.v_acc_m])
         pos = pos + rng.normal(0.0, 1.0, (m, 3)) * sig
         vel = vel + rng.normal(0.0, self.vel_acc_mps, (m, 3))

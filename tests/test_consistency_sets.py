@@ -22,6 +22,9 @@ def _result(run: int, pos_nees: np.ndarray) -> dict:
         "nis_vel": np.full(n, 3.0),
         "t_fix_s": t,
         "rate_dim": 0,
+        "control_pos": np.full(n, 3.0),
+        "control_vel": np.full(n, 3.0),
+        "control_t_s": t,
     }
 
 
@@ -41,6 +44,7 @@ def test_each_set_is_judged_on_its_own_runs_and_bounds():
     assert 30.0 > chi2_bounds(3, 2)[1]
     assert rows[1]["share_inside"]["NEES pos"] == 0.5
     assert rows[0]["share_inside"]["NIS gps pos"] == 1.0
+    assert rows[1]["control_share_inside"] == {"pos": 1.0, "vel": 1.0}
     assert "share_inside" not in rows[2]
 
 
@@ -53,8 +57,8 @@ def test_sets_must_be_positive():
 
 def test_cli_sets_repeat_a_single_set_exactly():
     """``ngnav consistency --runs 1 --sets 2`` as a real subprocess: set 0 is run 0,
-    so its shares equal those of ``--runs 1`` (run 0 alone) to the last digit; set 1
-    is run 1; ``blocks`` then average both runs."""
+    so its shares (the control's too) equal those of ``--runs 1`` (run 0 alone) to the
+    last digit; set 1 is run 1; ``blocks`` then average both runs."""
     args = ("consistency", *SHORT_TACTICAL_ARGS, "--workers", "1", "--json")
     one = json.loads(run_cli(*args, "--runs", "1").stdout)
     two = json.loads(run_cli(*args, "--runs", "1", "--sets", "2").stdout)
@@ -62,6 +66,7 @@ def test_cli_sets_repeat_a_single_set_exactly():
     s0, s1 = two["sets"]
     assert (s0["first_run"], s0["runs"], s1["first_run"], s1["runs"]) == (0, 1, 1, 1)
     assert s0["share_inside"] == {k: v["share_inside"] for k, v in one["blocks"].items()}
+    assert s0["control_share_inside"] == {k: v["share_inside"] for k, v in one["control"].items()}
     assert s1["share_inside"] != s0["share_inside"]
     meeting = sum(all(v >= 0.9 for v in s["share_inside"].values()) for s in two["sets"])
     assert two["sets_meeting_target"] == meeting

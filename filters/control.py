@@ -1,0 +1,130 @@
+"""A control for the consistency criterion: an exactly modelled filter on the same fixes.
+
+The 50-run criterion reads one draw of GPS noise. Position and velocity errors
+held by GPS averaging stay put for tens of seconds, so one draw can sit below
+(or above) the chi-square bounds for most of a flight with no fault in the filter.
+The control separates the draw from the filter: a linear Kalman filter that
+knows the trajectory's shape exactly (a perfect array: the acceleration is known,
+so there is no process noise) and learns the antenna's position and velocity
+from the run's own fixes, with their own stated accuracies.
+
+Its inputs are known and its model linear, so its estimate error depends only on
+the fixes' noise and can be computed from the noise alone: the filter runs on
+``z = fix - truth`` (noise), its estimate is its error, and the error's NEES is
+exactly chi-square with 3 degrees of freedom per block at every fix, for any
+trajectory. Its share of epochs inside the bounds over the same runs is what
+the criterion reads, on this very draw, for a filter consistent by construction.
+Where the navigation filter's position or velocity block misses and the control
+misses with it, the miss is the draw.
+
+Per fix: state ``[dp_ned (3), dv_ned (3)]``, transition ``[[I, dt I], [0, I]]``,
+measurement ``I`` (6) with ``R = diag(h_acc^2, h_acc^2, v_acc^2, vel_acc^2 (3))``,
+flat prior (the first fix initialises it: ``x = z_0``, ``P = R_0``); filterpy's
+predict/update. Glitched fixes are not fused (the navigation filter rejects them),
+the epoch is still counted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from filterpy.kalman import predict as kf_predict
+from filterpy.kalman import update as kf_update
+
+from ngnav.flight import FlightTruth
+from ngnav.geodesy import LocalTangentPlane
+from ngnav.gps import GpsFixes, antenna_truth
+from ngnav.records import freeze_fields
+
+
+@dataclass(frozen=True)
+class ControlNees:
+    """The control's NEES at each fix (after its update).
+
+    Attributes
+    ----------
+    t_s : array (M,)
+        Fix times (of validity), s.
+    nees_pos, nees_vel : array (M,)
+        NEES of the antenna position (3 dof) and velocity (3 dof) blocks.
+    """
+
+    t_s: np.ndarray
+    nees_pos: np.ndarray
+    nees_vel: np.ndarray
+
+    def __post_init__(self) -> None:
+        freeze_fields(self, {"t_s": (), "nees_pos": (), "nees_vel": ()})
+
+
+def fix_noise(
+    fixes: GpsFixes,
+    truth: FlightTruth,
+    ltp: LocalTangentPlane,
+    antenna_b_m: np.ndarray | tuple[float, float, float],
+) -> np.ndarray:
+    """The fixes' errors (M, 6): antenna position (NED, m) and velocity (NED, m/s).
+
+    Fixes must lie on the truth's sample times (a simulated run's do).
+    """
+    idx = np.searchsorted(truth.t_s, fixes.t_s)
+    idx = np.clip(idx, 0, truth.t_s.shape[0] - 1)
+    if len(fixes) and not np.allclose(truth.t_s[idx], fixes.t_s, rtol=0.0, atol=1e-9):
+        raise ValueError("the fixes are not on the truth's sample times: no exact control")
+    pos, vel = antenna_truth(truth, idx, antenna_b_m)
+    ned = ltp.to_ned(fixes.lat_deg, fixes.lon_deg, fixes.alt_m)
+    return np.hstack([ned - pos, fixes.vel_ned_mps - vel])
+
+
+def perfect_array_control(
+    fixes: GpsFixes,
+    noise: np.ndarray,
+    skip: np.ndarray | None = None,
+) -> ControlNees:
+    """Run the control (module docstring) on the fixes' noise.
+
+    Parameters
+    ----------
+    fixes : GpsFixes
+        The run's M fixes (times and stated accuracies).
+    noise : array (M, 6)
+        Their errors, :func:`fix_noise`.
+    skip : array (M,) of bool, optional
+        Fixes not fused (glitches); their epochs carry the predicted NEES.
+    """
+    m = len(fixes)
+    noise = np.asarray(noise, dtype=float)
+    if noise.shape != (m, 6):
+        raise ValueError(f"noise has shape {noise.shape}, expected ({m}, 6)")
+    skip = np.zeros(m, dtype=bool) if skip is None else np.asarray(skip, dtype=bool)
+    nees_pos = np.full(m, np.nan)
+    nees_vel = np.full(m, np.nan)
+    x: np.ndarray | None = None
+    p = np.zeros((6, 6))
+    f = np.eye(6)
+    h = np.eye(6)
+    q = np.zeros((6, 6))
+    for k in range(m):
+        r = np.diag(
+            np.concatenate(
+                [
+                    [fixes.h_acc_m[k] ** 2] * 2,
+                    [fixes.v_acc_m[k] ** 2],
+                    [fixes.vel_acc_mps[k] ** 2] * 3,
+                ]
+            )
+        )
+        if x is not None:
+            f[0:3, 3:6] = np.eye(3) * (fixes.t_s[k] - fixes.t_s[k - 1])
+            x, p = kf_predict(x, p, f, q)
+        if not skip[k]:
+            if x is None:
+                x, p = noise[k].copy(), r
+            else:
+                x, p = kf_update(x, p, noise[k], r, h)
+        if x is None:
+            continue
+        nees_pos[k] = x[0:3] @ np.linalg.solve(p[0:3, 0:3], x[0:3])
+        nees_vel[k] = x[3:6] @ np.linalg.solve(p[3:6, 3:6], x[3:6])
+    return ControlNees(np.asarray(fixes.t_s, dtype=float), nees_pos, nees_vel)
