@@ -304,13 +304,25 @@ def _finite_mean(x: np.ndarray, axis: int | None = None) -> np.ndarray:
         return np.where(n > 0, total / np.maximum(n, 1), np.nan)
 
 
+def _mean_se(stacked: np.ndarray) -> float:
+    """Standard error of a block's mean statistic from its runs (R, E): the spread of
+    the runs' own means over their epochs, over sqrt(R); NaN below two runs. The runs
+    are independent, their epochs not: this counts each run once."""
+    per_run = _finite_mean(stacked, axis=1)
+    per_run = per_run[np.isfinite(per_run)]
+    if per_run.shape[0] < 2:
+        return float("nan")
+    return float(np.std(per_run, ddof=1) / np.sqrt(per_run.shape[0]))
+
+
 def _block(
     per_run: list[np.ndarray], dim: int, runs: int, reference: bool = False
 ) -> tuple[dict, np.ndarray]:
     """Run-averaged statistic of one block against its two-sided 95 % bounds.
 
     Returns the summary (with the shares below and above the bounds: a
-    pessimistic filter falls below, an optimistic one above) and the per-epoch
+    pessimistic filter falls below, an optimistic one above; ``mean_se``, the
+    standard error of ``mean`` from the runs' spread) and the per-epoch
     average (E,). ``reference`` adds ``consistent_share``: the share a filter
     consistent by construction reaches with this statistic's correlation in time
     (:func:`filters.share_reference.consistent_share`), given two or more runs.
@@ -324,6 +336,7 @@ def _block(
         "lower": lo,
         "upper": hi,
         "mean": float(_finite_mean(avg)),
+        "mean_se": _mean_se(stacked),
         "share_inside": share_inside(avg, dim, runs),
         "share_below": float(np.mean(avg[ok] < lo)),
         "share_above": float(np.mean(avg[ok] > hi)),

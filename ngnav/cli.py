@@ -441,7 +441,7 @@ def cmd_consistency(args: argparse.Namespace) -> int:
         for name, b in {**blocks, **control_rows}.items():
             print(
                 f"  {name:14s} dim {b['dim']:2d}  bounds [{b['lower']:.2f}, {b['upper']:.2f}]  "
-                f"mean {b['mean']:7.2f}  inside {100 * b['share_inside']:5.1f} % of epochs "
+                f"mean {b['mean']:7.2f} +-{b['mean_se']:5.2f}  inside {100 * b['share_inside']:5.1f} % of epochs "
                 f"(below {100 * b['share_below']:4.1f} %, above {100 * b['share_above']:4.1f} %)"
             )
             ref = b.get("consistent_share")

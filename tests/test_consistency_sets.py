@@ -71,3 +71,17 @@ def test_cli_sets_repeat_a_single_set_exactly():
     meeting = sum(all(v >= 0.9 for v in s["share_inside"].values()) for s in two["sets"])
     assert two["sets_meeting_target"] == meeting
     assert two["blocks"]["NEES all"]["lower"] == pytest.approx(chi2_bounds(12, 2)[0])
+
+
+def test_block_mean_carries_its_standard_error_over_runs():
+    """``mean_se`` counts each run once: four runs whose statistic is 1, 2, 3 and 4 at
+    every epoch (NaN epochs skipped) give std(1..4) / 2, however many epochs."""
+    from filters.experiments import _block
+
+    per_run = [np.full(30, v) for v in (1.0, 2.0, 3.0, 4.0)]
+    per_run[2][:10] = np.nan
+    out, _ = _block(per_run, 3, 4)
+    # the mean is over epochs of the run average: 7/3 where run 3 has no value
+    assert out["mean"] == pytest.approx((10 * 7 / 3 + 20 * 2.5) / 30)
+    assert out["mean_se"] == pytest.approx(np.std([1, 2, 3, 4], ddof=1) / 2, rel=1e-12)
+    assert np.isnan(_block(per_run[:1], 3, 1)[0]["mean_se"])
