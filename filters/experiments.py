@@ -373,14 +373,18 @@ def _blocks(
     return blocks, averages
 
 
-def _control_blocks(rs: list[dict], runs: int, from_s: float | None = None) -> dict:
+def _control_blocks(
+    rs: list[dict], runs: int, from_s: float | None = None, reference: bool = False
+) -> dict:
     """The perfect-array control's position and velocity NEES (:mod:`filters.control`)
-    over the runs, from ``from_s`` s on, as :func:`_block` summarises a block."""
+    over the runs, from ``from_s`` s on, as :func:`_block` summarises a block (with
+    ``reference``, the consistent-filter share too: a check of that reference on a
+    statistic that is chi-square by construction)."""
     out = {}
     for name in ("pos", "vel"):
         key = f"control_{name}"
         per_run = [r[key] if from_s is None else r[key][r["control_t_s"] >= from_s] for r in rs]
-        out[name] = _block(per_run, 3, runs)[0]
+        out[name] = _block(per_run, 3, runs, reference)[0]
     return out
 
 
@@ -489,10 +493,10 @@ def consistency(
     if "aoa" in results[0]["nees"]:
         dims["aoa"] = 1  # the angle-of-attack state (NaN where the truth has none)
     out["blocks"], averages = _blocks(results, dims, runs, reference)
-    out["control"] = _control_blocks(results, runs)
+    out["control"] = _control_blocks(results, runs, reference=reference)
     if from_s is not None:
         out["blocks_from"] = _blocks(results, dims, runs, reference, from_s)[0]
-        out["control_from"] = _control_blocks(results, runs, from_s)
+        out["control_from"] = _control_blocks(results, runs, from_s, reference)
     if profile_s is not None:
         out["profile"] = nees_profile(results[0]["t_s"], averages, profile_s)
     if sets > 1:

@@ -91,8 +91,9 @@ def test_autocorrelation_leaves_out_missing_epochs_and_rejects_bad_shapes():
 
 
 def test_cli_prints_the_reference_beside_each_block():
-    """``ngnav consistency --reference`` as a real subprocess: every block carries
-    the consistent filter's share, a median at or above its 5th percentile."""
+    """``ngnav consistency --reference`` as a real subprocess: every block, the
+    control's too, carries the consistent filter's share, a median at or above its 5th
+    percentile."""
     proc = run_cli(
         "consistency",
         *SHORT_TACTICAL_ARGS,
@@ -104,7 +105,7 @@ def test_cli_prints_the_reference_beside_each_block():
         "--json",
     )
     out = json.loads(proc.stdout)
-    for name, b in out["blocks"].items():
+    for name, b in {**out["blocks"], **out["control"]}.items():
         ref = b["consistent_share"]
         assert 0.0 <= ref["p05"] <= ref["median"] <= 1.0, name
         assert 0.0 <= ref["prob_below_90"] <= 1.0 and ref["replicas"] == 200, name
