@@ -520,7 +520,8 @@ def set_shares(
 
     Set ``j`` holds the runs with indices ``j * per_set .. (j + 1) * per_set - 1``
     that did not diverge (``runs`` says how many), judged against the bounds for its
-    own run count. Each row: ``set``, ``first_run``, ``runs``, ``share_inside``
+    own run count. Each row: ``set``, ``first_run``, ``last_run`` (the set's index
+    range), ``runs`` (those averaged), ``share_inside``
     (block name to share, 0-1), ``control_share_inside`` (the perfect-array control's
     ``pos`` and ``vel``, :mod:`filters.control`) and, with ``from_s``, both again
     from then on (``share_inside_from``, ``control_share_inside_from``).
@@ -529,7 +530,7 @@ def set_shares(
     for j in range(sets):
         lo, hi = j * per_set, (j + 1) * per_set
         members = [r for r in results if lo <= r["run"] < hi]
-        row: dict = {"set": j, "first_run": lo, "runs": len(members)}
+        row: dict = {"set": j, "first_run": lo, "last_run": hi - 1, "runs": len(members)}
         if not members:
             rows.append(row)
             continue

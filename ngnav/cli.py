@@ -402,7 +402,8 @@ def _print_sets(rows: list[dict], meeting: int) -> None:
         if not r["runs"]:
             print(f"    set {r['set']}: every run diverged")
             continue
-        print(f"    {r['first_run']:4d}-{r['first_run'] + r['runs'] - 1:<4d} " + cells(r, ""))
+        short = "" if r["runs"] == r["last_run"] - r["first_run"] + 1 else f" ({r['runs']} runs)"
+        print(f"    {r['first_run']:4d}-{r['last_run']:<4d} " + cells(r, "") + short)
         if "share_inside_from" in r:
             print("      from    " + cells(r, "_from"))
 

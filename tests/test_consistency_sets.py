@@ -40,6 +40,7 @@ def test_each_set_is_judged_on_its_own_runs_and_bounds():
     rows = set_shares(results, {"pos": 3}, per_set=3, sets=3)
     assert [r["first_run"] for r in rows] == [0, 3, 6]
     assert [r["runs"] for r in rows] == [3, 2, 0]
+    assert [r["last_run"] for r in rows] == [2, 5, 8]
     assert rows[0]["share_inside"]["NEES pos"] == 1.0
     assert 30.0 > chi2_bounds(3, 2)[1]
     assert rows[1]["share_inside"]["NEES pos"] == 0.5
