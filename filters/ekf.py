@@ -745,6 +745,28 @@ class NavFilter:
         self._weights_cache[key] = got
         return got
 
+    def add_forecast_noise(self, cov_b: np.ndarray, t_s: float) -> None:
+        """Covariance of the compensation's forecast error over one block.
+
+        ``cov_b`` (6, 6) is the covariance of the error the forecast left in the
+        block's solved ``[wdot, f]`` (FRD; rad/s^2 and m/s^2), a constant over
+        the block's ``t_s`` seconds: it adds ``cov t^2`` to the rate (body) and
+        ``C cov C^T t^2`` to the velocity (NED), with their cross term, as
+        :meth:`add_hold_noise` does for a held run; the next transition carries
+        it into attitude and position.
+        """
+        c = dcm_from_quat(self.q)
+        p = self.P
+        g = np.zeros((6, 6))
+        g[0:3, 0:3] = np.eye(3) * t_s
+        g[3:6, 3:6] = c * t_s
+        add = g @ cov_b @ g.T
+        add += add.T
+        add *= 0.5  # exactly symmetric
+        idx = np.r_[RATE.start : RATE.stop, VEL.start : VEL.stop]
+        p[np.ix_(idx, idx)] += add
+        self.P = p
+
     def add_hold_noise(
         self, t_before_s: float, t_after_s: float, wdot_sigma_rps2: float, f_sigma_mps2: float
     ) -> None:

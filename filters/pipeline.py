@@ -46,7 +46,7 @@ from ngnav.frontend import ArraySolver
 from ngnav.geodesy import LocalTangentPlane
 from ngnav.gps import GpsFixes
 from ngnav.layout import ArrayLayout, kinematic_features, rate_quadratics
-from ngnav.predictors import GreyPredictor, LastValuePredictor, LinePredictor
+from ngnav.predictors import GreyPredictor, LastValuePredictor, LinePredictor, noise_gain
 from ngnav.records import ArraySamples, freeze_fields
 from ngnav.rotation import dcm_from_quat, euler_from_quat
 from ngnav.runconfig import RunConfig
@@ -63,6 +63,9 @@ REOPEN_TILT_SIGMA_RAD = float(np.deg2rad(10.0))
 REOPEN_RATE_SIGMA_RPS = float(np.deg2rad(2.0))
 #: A second reopen within this time is a divergence (:class:`filters.ekf.LostTrackError`), s.
 REOPEN_MIN_INTERVAL_S = 10.0
+#: Blocks the running mean of the forecast's squared error spans (``Pipeline._forecast_noise``):
+#: a manoeuvre's onset lasts a few tenths of a second, so a few blocks at 100 Hz.
+FORECAST_ERROR_BLOCKS = 5
 #: Rate of the zero-sideslip pseudo-measurement (when configured), Hz.
 SIDESLIP_RATE_HZ = 5.0
 #: The lift law's load, extrapolated from two block means to the block end:
@@ -359,6 +362,10 @@ class Pipeline:
         self.last_rate_nis = float("nan")
         self.block_faulty = 0
         self.block_fallbacks = 0
+        #: The last block's compensated ``[wdot, f]`` mean (FRD; rad/s^2, m/s^2) less the
+        #: bias estimates less its forecast, (6,): the forecast's error plus noise (NaN
+        #: without a forecast compensation or before the first block).
+        self.last_forecast_error = np.full(6, np.nan)
         self._rec: list[tuple] = []
         self._inn: list[tuple] = []
         self._rate_nis: list[float] = []
@@ -689,6 +696,17 @@ class Pipeline:
         self._wd_smooth = np.zeros(3)
         self._smooth_gain = min(1.0, 1.0 / (WDOT_SMOOTHING_S * cfg.filter.rate_hz))
         self._phi_hat = np.zeros(12) if self.predictor is not None else None
+        # the forecast's error (see _forecast_noise): its noise floor, the block means'
+        # own noise plus what the forecast carries of the history's
+        self._fe_persistence = cfg.filter.forecast_error_persistence if se is not None else 0.0
+        self._fe_d2 = np.zeros(6)
+        #: The noise in :attr:`last_forecast_error` of a block of one sample, (6,):
+        #: ``(1 + g) N`` with ``N`` the raw feature noise variance per sample and ``g``
+        #: the forecast's noise gain; a block of ``k`` samples has ``1 / k`` of it.
+        self.forecast_error_floor = np.zeros(6)
+        if self.predictor is not None:
+            gain = noise_gain(self.predictor, self._hist[:window, 0:9])[3:9]
+            self.forecast_error_floor = (1.0 + gain) * np.diag(self.solver.covariance())[0:6]
         self._full_check_every = max(1, round(cfg.filter.rate_hz))  # Cholesky once a second
         self._e = 0
         self._t_hold = 0.0  # seconds of held samples in the current run
@@ -818,6 +836,10 @@ class Pipeline:
                 )
         good = xs[~bad] if 0 < n_ok < kk else xs
         self._last_mean = good.sum(axis=0) * (1.0 / good.shape[0])
+        if phi_hat is not None:
+            self.last_forecast_error = self._last_mean[0:6] - nf.bias[0:6] - phi_hat[0:6]
+            if self._fe_persistence > 0.0:
+                self._forecast_noise(self.last_forecast_error, n_ok, kk * dt)
         if row == self._hist.shape[0]:
             # a sliding window: keep the rows the next forecasts read
             self._hist[:window] = self._hist[row - window : row]
@@ -889,6 +911,33 @@ class Pipeline:
         self._record()
         if self.on_epoch is not None:
             self.on_epoch(self)
+
+    def _forecast_noise(self, d: np.ndarray, n_ok: int, t_s: float) -> None:
+        """Add the error the compensation's forecast left in this block (the forecast's error).
+
+        ``d`` (6,) is the block's compensated ``[wdot, f]`` mean less the bias estimates
+        less its forecast: the forecast's error ``Delta`` (to ``(I + E) Delta``, ``E``
+        a few per cent) plus noise, the block mean's own and what the forecast carries
+        of its history's (``(1 + g) N / k`` per channel, ``g`` from
+        :func:`ngnav.predictors.noise_gain`). Through a manoeuvre's onset ``Delta``
+        is many times that noise; in steady flight it is below it. Its variance is
+        tracked as a running mean of ``d^2`` over :data:`FORECAST_ERROR_BLOCKS` blocks
+        less the noise floor, kept where positive, and the compensation leaves
+        ``E_6 Delta`` of it in the features (``E_6`` the compensation matrix's
+        ``[wdot, f]`` block): the filter adds that covariance times
+        ``filter.forecast_error_persistence`` over the block
+        (:meth:`filters.ekf.NavFilter.add_forecast_noise`). The noise part of the
+        forecast's error is already in the feature noise (:func:`filter_noise`).
+        """
+        if not np.all(np.isfinite(d)) or n_ok <= 0:
+            return
+        self._fe_d2 += (d * d - self._fe_d2) * (1.0 / FORECAST_ERROR_BLOCKS)
+        excess = self._fe_d2 - self.forecast_error_floor / n_ok
+        if not np.any(excess > 0.0):
+            return
+        e6 = self._se[0:6, 0:6]
+        cov = (e6 * np.maximum(excess, 0.0)) @ e6.T
+        self.nf.add_forecast_noise(cov * self._fe_persistence, t_s)
 
     def _hold_noise(self, bad: np.ndarray, dt: float) -> None:
         """Add the forecast's error over the held runs of this block (see FilterSettings)."""

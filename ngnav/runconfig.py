@@ -31,7 +31,8 @@ truth to separate files.
                    aoa_prior_sigma_deg, aoa_rw_deg_rts, aoa_lift_k_m, aoa_lift_k_sigma_m,
                    liftoff_speed_mps,
                    gps_gap_reset_s, fusion_lag_s,
-                   hold_wdot_sigma_rps2, hold_force_sigma_mps2, position_states
+                   hold_wdot_sigma_rps2, hold_force_sigma_mps2, position_states,
+                   forecast_error_persistence
 """
 
 from __future__ import annotations
@@ -150,6 +151,16 @@ class FilterSettings:
     remainder"); ``ngnav remainder`` measures what a flight's remainders actually
     need, against its truth.
 
+    ``forecast_error_persistence`` (>= 0, default 2): with a forecast compensation
+    (GM(1,1), line, last) the filter measures the forecast's error after each block,
+    from the block's own mean less the forecast, and adds what the compensation
+    left of it to the rate and velocity covariance (``filters.pipeline``, "the
+    forecast's error"). The error of a forecast through a manoeuvre's onset is
+    not white: it persists over a few blocks, and this is how many blocks' worth
+    of its variance one block counts, ``1 + 2 sum_k rho_k`` of its
+    autocorrelation (measured on ``tactical``: 1.2 to 3.7 over the roll-ins,
+    README). 0 switches it off.
+
     ``coast_remainder_updates`` (>= 1, default 40) replaces ``remainder_updates``
     while the filter coasts: from ``coast_after_s`` (default 1 s) or five intervals
     of the GPS fixes received, whichever is longer, without an accepted GPS position until
@@ -181,6 +192,7 @@ class FilterSettings:
     attitude_remainder_updates: float = 40.0
     coast_remainder_updates: float = 40.0
     coast_after_s: float = 1.0
+    forecast_error_persistence: float = 2.0
 
     def __post_init__(self) -> None:
         if self.compensation not in COMPENSATIONS:
@@ -228,6 +240,14 @@ class FilterSettings:
             v = getattr(self, name)
             if not (np.isfinite(v) and 1.0 <= v <= 1e4):
                 raise ValueError(f"filter.{name} must be a number in [1, 10000], got {v}")
+        if not (
+            np.isfinite(self.forecast_error_persistence)
+            and 0.0 <= self.forecast_error_persistence <= 100.0
+        ):
+            raise ValueError(
+                "filter.forecast_error_persistence must be a number in [0, 100], got "
+                f"{self.forecast_error_persistence}"
+            )
         if not (np.isfinite(self.coast_after_s) and 0.0 < self.coast_after_s <= 1e3):
             raise ValueError(
                 f"filter.coast_after_s must be a number in (0, 1000] s, got {self.coast_after_s}"

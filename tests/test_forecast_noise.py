@@ -1,0 +1,137 @@
+"""The compensation's forecast error as filter noise (``filter.forecast_error_persistence``)."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from filters.pipeline import Pipeline, _feed
+from filters.state import RATE, VEL
+from ngnav.flight_scenario import load_flight
+from ngnav.predictors import GreyPredictor, LastValuePredictor, LinePredictor, noise_gain
+from ngnav.rotation import dcm_from_quat, quat_from_rotvec
+from ngnav.runconfig import FilterSettings
+from ngnav.simulate import simulate_flight
+from tests.helpers import level_filter
+
+
+@pytest.mark.parametrize("window", [2, 3, 5, 8])
+def test_noise_gain_of_a_line_is_its_closed_form(window):
+    """One step past n points of a least-squares line: 1/n + ((n + 1) / 2)^2 / S_xx."""
+    x = np.arange(window, dtype=float)
+    sxx = float(np.sum((x - x.mean()) ** 2))
+    exact = 1.0 / window + ((window + 1) / 2.0) ** 2 / sxx
+    hist = np.column_stack([np.linspace(0.0, 1.0, window), np.full(window, -3.0)])
+    g = noise_gain(LinePredictor(window=window), hist)
+    assert g == pytest.approx([exact, exact], rel=1e-6)
+    assert noise_gain(LastValuePredictor(), hist[-1:]) == pytest.approx([1.0, 1.0], rel=1e-9)
+
+
+def test_noise_gain_of_gm11_matches_its_monte_carlo_variance():
+    """The linearised gain against the spread of GM(1,1) forecasts of noisy histories.
+
+    2000 histories of a smooth positive signal plus 1e-3 white noise: the forecasts'
+    variance over sigma^2 must match the gain within the chi-square 0.001 / 0.999
+    quantiles of a 2000-sample variance.
+    """
+    pred = GreyPredictor(window=5, shift=np.zeros(1))
+    clean = np.array([[2.0], [2.1], [2.25], [2.45], [2.7]])
+    g = float(noise_gain(pred, clean)[0])
+    rng = np.random.default_rng(11)
+    sigma, n = 1e-3, 2000
+    f0 = pred.forecast(clean, 0)[0][0]
+    f = np.array(
+        [pred.forecast(clean + rng.normal(0, sigma, clean.shape), 0)[0][0] for _ in range(n)]
+    )
+    ratio = float(np.sum((f - f0) ** 2) / n / sigma**2) / g
+    lo, hi = chi2.ppf([0.001, 0.999], n) / n
+    assert lo < ratio < hi
+    assert 1.0 < g < 3.0  # more than the last value's, as an extrapolation
+
+
+def test_noise_gain_rejects_a_flat_history():
+    with pytest.raises(ValueError, match="history must be"):
+        noise_gain(LinePredictor(window=3), np.zeros(3))
+
+
+def test_forecast_noise_is_a_constant_error_over_the_block():
+    """What it adds is the covariance of rate += t e_w and velocity += t C e_f."""
+    nf, _, _ = level_filter()
+    nf.q = quat_from_rotvec(np.array([0.3, -0.2, 1.1]))
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(6, 6))
+    cov = a @ a.T * 1e-4
+    t = 0.01
+    p0 = nf.P.copy()
+    nf.add_forecast_noise(cov, t)
+    g = np.zeros((nf.layout.n, 6))
+    g[RATE, 0:3] = t * np.eye(3)
+    g[VEL, 3:6] = t * dcm_from_quat(nf.q)
+    np.testing.assert_allclose(nf.P - p0, g @ cov @ g.T, atol=1e-15)
+    np.testing.assert_array_equal(nf.P - p0, (nf.P - p0).T)
+
+
+def _forecast_errors(scn, run: int = 0) -> tuple[np.ndarray, np.ndarray, Pipeline]:
+    sim = simulate_flight(scn, run)
+    out_t, out_d, out_k = [], [], []
+    last = {"t": None}
+
+    def grab(p: Pipeline) -> None:
+        t = p.nf.t_s
+        if last["t"] is not None:
+            out_t.append(t)
+            out_d.append(p.last_forecast_error.copy())
+            out_k.append(round((t - last["t"]) / p.dt))
+        last["t"] = t
+
+    pipe = Pipeline(sim.config, on_epoch=grab)
+    _feed(pipe, sim.samples, sim.fixes, None)
+    d = np.array(out_d)
+    return np.array(out_t), d * d * np.array(out_k)[:, None], pipe
+
+
+def test_forecast_error_at_rest_is_its_noise_floor():
+    """At rest the forecast's error is noise alone: d^2 k averages to (1 + g) N per channel.
+
+    ``static`` (120 s at rest, 100 Hz blocks). The blocks share the forecast's
+    window, so the 11 000 squares are taken as 11 000 / 5 independent ones for the
+    chi-square 0.001 / 0.999 bounds of their mean.
+    """
+    t, d2k, pipe = _forecast_errors(load_flight("static"))
+    keep = t > 5.0 + 1.0  # after the alignment and the history's first window
+    ratio = d2k[keep].mean(axis=0) / pipe.forecast_error_floor
+    dof = keep.sum() / 5
+    lo, hi = chi2.ppf([0.001, 0.999], dof) / dof
+    assert np.all((lo < ratio) & (ratio < hi)), ratio
+
+
+def test_forecast_noise_grows_the_rate_covariance_in_a_roll_out_not_in_a_dive():
+    """tactical's roll-out of the climbing turn (47 s) against its steady dive (33 s)."""
+    scn = load_flight("tactical", ["run.rate_hz=200"])
+    sim = simulate_flight(scn, 0)
+    rate_var = {}
+    for persistence in (0.0, 2.0):
+        f = replace(sim.config.filter, forecast_error_persistence=persistence)
+        cfg = replace(sim.config, filter=f)
+        seen = {}
+
+        def grab(p: Pipeline, seen=seen) -> None:
+            for tk in (33.0, 48.0):
+                if tk not in seen and p.nf.t_s >= tk:
+                    seen[tk] = float(np.trace(p.nf.P[RATE, RATE]))
+
+        pipe = Pipeline(cfg, on_epoch=grab)
+        _feed(pipe, sim.samples, sim.fixes, None)
+        rate_var[persistence] = seen
+    steady = rate_var[2.0][33.0] / rate_var[0.0][33.0]
+    roll_out = rate_var[2.0][48.0] / rate_var[0.0][48.0]
+    assert steady < 1.05
+    assert roll_out > 1.2
+
+
+def test_forecast_error_persistence_is_checked():
+    with pytest.raises(ValueError, match="forecast_error_persistence must be"):
+        FilterSettings(forecast_error_persistence=-1.0)
+    with pytest.raises(ValueError, match="forecast_error_persistence must be"):
+        FilterSettings(forecast_error_persistence=float("nan"))
