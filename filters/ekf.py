@@ -755,16 +755,16 @@ class NavFilter:
         :meth:`add_hold_noise` does for a held run; the next transition carries
         it into attitude and position.
         """
-        c = dcm_from_quat(self.q)
+        ct = dcm_from_quat(self.q) * t_s
+        t2 = t_s * t_s
+        ww = cov_b[0:3, 0:3] * t2
+        wf = cov_b[0:3, 3:6] @ ct.T * t_s
+        ff = ct @ cov_b[3:6, 3:6] @ ct.T
         p = self.P
-        g = np.zeros((6, 6))
-        g[0:3, 0:3] = np.eye(3) * t_s
-        g[3:6, 3:6] = c * t_s
-        add = g @ cov_b @ g.T
-        add += add.T
-        add *= 0.5  # exactly symmetric
-        idx = np.r_[RATE.start : RATE.stop, VEL.start : VEL.stop]
-        p[np.ix_(idx, idx)] += add
+        p[RATE, RATE] += 0.5 * (ww + ww.T)  # exactly symmetric
+        p[RATE, VEL] += wf
+        p[VEL, RATE] += wf.T
+        p[VEL, VEL] += 0.5 * (ff + ff.T)
         self.P = p
 
     def add_hold_noise(

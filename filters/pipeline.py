@@ -66,6 +66,11 @@ REOPEN_MIN_INTERVAL_S = 10.0
 #: Blocks the running mean of the forecast's squared error spans (``Pipeline._forecast_noise``):
 #: a manoeuvre's onset lasts a few tenths of a second, so a few blocks at 100 Hz.
 FORECAST_ERROR_BLOCKS = 5
+#: The forecast's error counts only where its running mean square exceeds the noise floor
+#: this many times: below, what it would add is at most ``E_6^2`` times the floor, about
+#: 1 % of a block's feature noise (``E_6`` about 0.07), and skipping it saves the block's
+#: covariance arithmetic (at rest a 5-block mean of squares passes 2 with chance 0.075).
+FORECAST_ERROR_GATE = 2.0
 #: Rate of the zero-sideslip pseudo-measurement (when configured), Hz.
 SIDESLIP_RATE_HZ = 5.0
 #: The lift law's load, extrapolated from two block means to the block end:
@@ -922,7 +927,8 @@ class Pipeline:
         :func:`ngnav.predictors.noise_gain`). Through a manoeuvre's onset ``Delta``
         is many times that noise; in steady flight it is below it. Its variance is
         tracked as a running mean of ``d^2`` over :data:`FORECAST_ERROR_BLOCKS` blocks
-        less the noise floor, kept where positive, and the compensation leaves
+        less the noise floor, kept where positive (once some channel's mean passes
+        :data:`FORECAST_ERROR_GATE` times its floor), and the compensation leaves
         ``E_6 Delta`` of it in the features (``E_6`` the compensation matrix's
         ``[wdot, f]`` block): the filter adds that covariance times
         ``filter.forecast_error_persistence`` over the block
@@ -931,12 +937,13 @@ class Pipeline:
         """
         if not np.all(np.isfinite(d)) or n_ok <= 0:
             return
-        self._fe_d2 += (d * d - self._fe_d2) * (1.0 / FORECAST_ERROR_BLOCKS)
-        excess = self._fe_d2 - self.forecast_error_floor / n_ok
-        if not np.any(excess > 0.0):
+        d2 = self._fe_d2
+        d2 += (d * d - d2) * (1.0 / FORECAST_ERROR_BLOCKS)
+        floor = self.forecast_error_floor * (1.0 / n_ok)
+        if not np.any(d2 > FORECAST_ERROR_GATE * floor):
             return
         e6 = self._se[0:6, 0:6]
-        cov = (e6 * np.maximum(excess, 0.0)) @ e6.T
+        cov = (e6 * np.maximum(d2 - floor, 0.0)) @ e6.T
         self.nf.add_forecast_noise(cov * self._fe_persistence, t_s)
 
     def _hold_noise(self, bad: np.ndarray, dt: float) -> None:
