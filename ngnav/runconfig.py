@@ -160,8 +160,8 @@ class FilterSettings:
     of its variance one block counts (``1 + 2 sum_k rho_k`` of its autocorrelation;
     over ``tactical``'s roll-ins the angular acceleration's reads 0.72, 0.3 and 0.1
     at lags of 1, 2 and 5 blocks). 1, 2 and 3 were tried on 100 ``tactical`` runs
-    and 2 was measured over ten draws of 50 (README, "the forecast's error"); 1 costs
-    the joint NEES less and is not measured over the draws. 0 switches it off.
+    and 1 and 2 over ten draws of 50 (README, "the forecast's error"): 2 meets the
+    target on one draw, 1 on none. 0 switches it off.
 
     ``coast_remainder_updates`` (>= 1, default 40) replaces ``remainder_updates``
     while the filter coasts: from ``coast_after_s`` (default 1 s) or five intervals
