@@ -238,10 +238,12 @@ def remainder_variance(
 
     The variance counted ``updates`` times (default :data:`SIDESLIP_REMAINDER_UPDATES`)
     and its attitude-product part ``attitude_updates`` times (default
-    :data:`ATTITUDE_REMAINDER_UPDATES`): each count is the number of consecutive
-    updates that share one value of that part.
+    :data:`ATTITUDE_REMAINDER_UPDATES`), but never fewer times than the whole
+    (``max(attitude_updates, updates)``: a coast's or hand-over's count covers the
+    attitude part too): each count is the number of consecutive updates that share
+    one value of that part.
     """
-    return updates * rem.var + (attitude_updates - updates) * rem.var_att
+    return updates * rem.var + max(attitude_updates - updates, 0.0) * rem.var_att
 
 
 def update_correlated(
@@ -369,6 +371,7 @@ class Counters:
     heading_resets: int = 0
     attitude_reopens: int = 0
     coast_model_updates: int = 0
+    handover_model_updates: int = 0
 
 
 @dataclass
@@ -443,6 +446,13 @@ class NavFilter:
         :data:`COAST_AFTER_FIXES` fix intervals), and how long after the
         last coasting update the count holds (s; 0 by default, the pipeline passes
         the count's own length at its 5 Hz): :meth:`current_remainder_updates`.
+    handover_hold_s : float
+        How long after :meth:`initialise` the body-velocity updates count the whole
+        remainder ``coast_remainder_updates`` times, as after a coast (s, >= 0;
+        default 0). The pipeline passes the coast's hold for a configured alignment
+        (a hand-over): its attitude errors, as large as a coast leaves, have not yet
+        been renewed by any measurement (README, "the hand-over counted as a coast's
+        end").
 
     Attributes
     ----------
@@ -469,6 +479,7 @@ class NavFilter:
     coast_remainder_updates: float = COAST_REMAINDER_UPDATES
     coast_after_s: float = COAST_AFTER_S
     coast_hold_s: float = 0.0
+    handover_hold_s: float = 0.0
     counters: Counters = field(default_factory=Counters)
 
     def __post_init__(self) -> None:
@@ -476,11 +487,12 @@ class NavFilter:
             v = getattr(self, name)
             if not (np.isfinite(v) and 1.0 <= v <= 1e4):
                 raise ValueError(f"{name} must be a number in [1, 10000], got {v}")
-        for name in ("coast_after_s", "coast_hold_s"):
+        for name in ("coast_after_s", "coast_hold_s", "handover_hold_s"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0.0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {v}")
         self._coast_until = -np.inf
+        self._handover_until = -np.inf
         self._t_prev_fix = -np.inf
         #: Spacing of the last two GPS fixes received, s (NaN before the second).
         self.fix_interval_s = float("nan")
@@ -631,6 +643,7 @@ class NavFilter:
         self.P = p
         self.x = np.zeros(self.layout.n)
         self.t_last_position_fix = self.t_s
+        self._handover_until = self.t_s + self.handover_hold_s
         self.check_covariance("initialisation")
 
     # ------------------------------------------------------------- propagation
@@ -1392,8 +1405,10 @@ class NavFilter:
         five intervals of the GPS fixes received, whichever is longer, since the last
         accepted GPS position: a slow receiver's normal spacing is not a coast) and for
         ``coast_hold_s`` after it: the remainder built up in a coast lasts as long
-        after it as in it. Otherwise ``remainder_updates``. Called once per update: a
-        coasting call is counted (``counters.coast_model_updates``) and extends the hold.
+        after it as in it. The same count, if not coasting, until ``handover_hold_s``
+        after :meth:`initialise` (``counters.handover_model_updates``). Otherwise
+        ``remainder_updates``. Called once per update: a coasting call is counted
+        (``counters.coast_model_updates``) and extends the hold.
         """
         after = self.coast_after_s
         if not math.isnan(self.fix_interval_s):
@@ -1403,6 +1418,9 @@ class NavFilter:
             self._coast_until = self.t_s + self.coast_hold_s
         if coasting or self.t_s < self._coast_until:
             self.counters.coast_model_updates += 1
+            return self.coast_remainder_updates
+        if self.t_s < self._handover_until:
+            self.counters.handover_model_updates += 1
             return self.coast_remainder_updates
         return self.remainder_updates
 

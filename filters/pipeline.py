@@ -580,6 +580,12 @@ class Pipeline:
             coast_after_s=cfg.filter.coast_after_s,
             # a coast's remainder lasts its count of updates after the coast
             coast_hold_s=cfg.filter.coast_remainder_updates / SIDESLIP_RATE_HZ,
+            # a hand-over's attitude errors are a coast's: counted so for as long
+            handover_hold_s=(
+                cfg.filter.coast_remainder_updates / SIDESLIP_RATE_HZ
+                if cfg.initial.alignment == "config"
+                else 0.0
+            ),
         )
         nf.body_velocity_log = self.body_velocity_log
         self.nf = nf
@@ -1064,6 +1070,9 @@ class Pipeline:
                 "heading resets to the GPS course": nf.counters.heading_resets,
                 "attitude reopened after rejected velocities": nf.counters.attitude_reopens,
                 "vehicle-model updates counted as coasting": nf.counters.coast_model_updates,
+                "vehicle-model updates counted as the hand-over": (
+                    nf.counters.handover_model_updates
+                ),
                 "grey forecasts fallen back": self.n_fallbacks,
             }
         )

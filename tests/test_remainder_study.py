@@ -1,5 +1,6 @@
 """The sideslip remainder measured against a truth (``ngnav remainder``)."""
 
+import dataclasses
 import itertools
 import json
 
@@ -248,7 +249,8 @@ def test_integrated_autocorrelation_sees_a_slow_part_the_lag1_correlation_misses
 def test_remainder_counts_are_settings_that_reach_the_update():
     """``filter.remainder_updates`` and ``filter.attitude_remainder_updates`` set the
     R of every sideslip update (``sigma^2 + remainder_variance``), checked on the
-    first update of a short run, where both runs are still in the same state."""
+    first update after the hand-over's hold (8 s, during which both count the
+    coast's 40), where both runs are still in the same state."""
     with pytest.raises(ValueError, match=r"filter\.remainder_updates must be a number in"):
         FilterSettings(remainder_updates=0.5)
     with pytest.raises(ValueError, match=r"filter\.attitude_remainder_updates must be"):
@@ -261,7 +263,7 @@ def test_remainder_counts_are_settings_that_reach_the_update():
         sim = simulate_flight(scn, 0)
         log = []
         run_filter(sim.samples, sim.fixes, sim.config, body_velocity_log=log)
-        firsts[n_att] = next(r for r in log if r.axis == LATERAL)
+        firsts[n_att] = next(r for r in log if r.axis == LATERAL and r.t_s >= 8.0)
     a, b = firsts[40.0], firsts[7.0]
     assert a.t_s == b.t_s and a.remainder == b.remainder
     speed = np.hypot(*a.vel_ned_mps[:2])
@@ -278,7 +280,7 @@ def test_remainder_cli():
     out = json.loads(proc.stdout)
     assert out["runs"] == 2 and out["left_out"] == []
     counts = ("remainder_updates", "attitude_remainder_updates", "coast_remainder_updates")
-    assert tuple(out[k] for k in counts) == (4.0, 40.0, 40.0)
+    assert tuple(out[k] for k in counts) == (4.0, 7.0, 40.0)  # tactical.toml: 7
     assert set(out["models"]) == {"lateral", "vertical"}  # tactical flies both models
     for m in out["models"].values():
         assert [(w["t0_s"], w["t1_s"]) for w in m["windows"]] == [(0.0, 30.0), (30.0, 60.0)]
@@ -340,14 +342,50 @@ def test_coast_counts_the_remainder_longer_and_holds_after():
 def test_an_outage_switches_the_count_for_its_length_and_the_hold():
     """End to end: a short ``tactical`` flight with a 5 s GPS outage from 20 s counts
     its vehicle-model updates as coasting from 1 s into the outage until 8 s (40
-    updates at 5 Hz) after the GPS is back, both models; without an outage none."""
+    updates at 5 Hz) after the GPS is back, both models; without an outage none.
+    Either way its first 8 s, after the launcher's hand-over, count as the hand-over."""
     key = "vehicle-model updates counted as coasting"
     base = ["run.rate_hz=200"]
     sim = simulate_flight(load_flight("tactical", base), 0)
-    assert run_filter(sim.samples, sim.fixes, sim.config).counts[key] == 0
+    counts = run_filter(sim.samples, sim.fixes, sim.config).counts
+    assert counts[key] == 0
+    # 8 s at 5 Hz, both models, from the first update at the start
+    assert counts["vehicle-model updates counted as the hand-over"] == 2 * 40
     scn = load_flight("tactical", [*base, "gps.outage_start_s=20", "gps.outage_s=5"])
     sim = simulate_flight(scn, 0)
     n = run_filter(sim.samples, sim.fixes, sim.config).counts[key]
     # (5 s - 1 s + 8 s) at 5 Hz, two models; the fixes' 0.1 s spacing and 0.05 s
     # latency move each end by at most a fix and an update
     assert abs(n - 2 * 5 * 12) <= 2 * 2, n
+
+
+def test_a_handover_counts_the_remainder_as_a_coasts_end():
+    """After :meth:`NavFilter.initialise` the body-velocity updates count the whole
+    remainder ``coast_remainder_updates`` times for ``handover_hold_s`` (the pipeline's
+    configured alignment), then ``remainder_updates``; the attitude part is never
+    counted fewer times than the whole; without a hold (a static alignment) none."""
+    nf, _, _ = level_filter()
+    assert nf.handover_hold_s == 0.0
+    nf.vel = np.array([20.0, 0.0, 0.0])
+    nf.t_s = nf.t_last_position_fix = 0.0
+    assert nf.current_remainder_updates() == SIDESLIP_REMAINDER_UPDATES
+    nf.handover_hold_s = 8.0
+    nf.attitude_remainder_updates = 7.0
+    nf.initialise(
+        1.0, np.zeros(3), nf.vel, nf.q, np.zeros(3), np.ones(3), np.ones(3), np.ones(3), 0.01
+    )
+    nf.body_velocity_log = []
+    sigma2 = (20.0 * np.tan(np.deg2rad(1e-3))) ** 2
+    for t, n in ((1.0, COAST_REMAINDER_UPDATES), (8.9, COAST_REMAINDER_UPDATES), (9.0, 4.0)):
+        nf.t_s = nf.t_last_position_fix = t
+        nf.update_sideslip(np.deg2rad(1e-3), 5.0)
+        rec = nf.body_velocity_log[-1]
+        rem = rec.remainder
+        # in the hold the whole count (40) covers the attitude part's 7
+        att = max(7.0, n) - n
+        assert rec.r_m2ps2 == pytest.approx(sigma2 + n * rem.var + att * rem.var_att, rel=1e-12)
+    assert nf.counters.handover_model_updates == 2 and nf.counters.coast_model_updates == 0
+    assert remainder_variance(rem, 40.0, 7.0) == pytest.approx(40.0 * rem.var)
+    assert remainder_variance(rem, 4.0, 7.0) == pytest.approx(4.0 * rem.var + 3.0 * rem.var_att)
+    with pytest.raises(ValueError, match="handover_hold_s must be a finite number"):
+        dataclasses.replace(nf, handover_hold_s=-1.0)
