@@ -679,11 +679,19 @@ class Pipeline:
         self._i0 = i_start
         self._next_grid = i_start + k_reg
         k_feat = self._k
-        self._record()
         lo = max(0, i_start - k_reg)
         seed_block = sa[lo : i_start + 1]
         seed_ok = ~invalid[lo : i_start + 1]
         seed_mean = seed_block[seed_ok].mean(axis=0) if np.any(seed_ok) else np.zeros(k_feat)
+        if nf.layout.n_aoa and np.any(seed_ok):
+            # the lift law needs a load before the first block: the seed's (without it
+            # the first epoch's angle of attack was the law's offset alone, 2.5-3.5 deg
+            # off on tactical at 1 g and 60 m/s)
+            nf.set_load(
+                seed_mean[3:6] - nf.bias[3:6],
+                load_cov=nf.noise.feature_cov[3:6, 3:6] / int(np.count_nonzero(seed_ok)),
+            )
+        self._record()
         self._hist = np.empty((window + 1024, 9))
         self._h_n = window  # rows used
         # the forecast history holds motion: block means less the current bias estimates
