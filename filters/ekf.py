@@ -72,6 +72,8 @@ SIDESLIP_REMAINDER_UPDATES = 4.0
 #: ``filter.attitude_remainder_updates``. Counted like the rest (4) it turned a hand-over's
 #: 1 deg roll and pitch errors into a pitch and angle of attack 2-3 times surer than
 #: their errors (``tactical``, 16 runs, 2-4 s: attitude NEES 7.3, angle of attack 6.1).
+#: Since a hand-over counts as a coast's end (``NavFilter.handover_hold_s``) a flight
+#: may count it as long as it lasts after the hand-over: ``tactical`` sets 7.
 ATTITUDE_REMAINDER_UPDATES = 40.0
 #: Times the body-velocity updates count the whole remainder in a coast: from
 #: :data:`COAST_AFTER_S` without an accepted GPS position until ``coast_hold_s`` after

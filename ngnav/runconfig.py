@@ -146,10 +146,14 @@ class FilterSettings:
     times the sideslip and angle-of-attack updates count their second-order
     remainder's variance, and its attitude-product part, in R: the number of
     consecutive 5 Hz updates that share one value of it
-    (``filters.ekf.remainder_variance``). The defaults, 4 and 40, are what the
-    shipped flights were tuned and measured with (README, "the sideslip
-    remainder"); ``ngnav remainder`` measures what a flight's remainders actually
-    need, against its truth.
+    (``filters.ekf.remainder_variance``; the attitude part never fewer times than
+    the whole). The defaults, 4 and 40, are what ``uav-survey`` was tuned and
+    measured with (README, "the sideslip remainder"); ``tactical`` counts the
+    attitude part 7 times, its measured persistence after the hand-over, which
+    counts the whole remainder ``coast_remainder_updates`` times for the coast's
+    hold (a configured alignment; README, "the hand-over counted as a coast's
+    end"). ``ngnav remainder`` measures what a flight's remainders actually need,
+    against its truth.
 
     ``forecast_error_persistence`` (>= 0, default 2): with a forecast compensation
     (GM(1,1), line, last) the filter measures the forecast's error after each block,
