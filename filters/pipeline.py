@@ -561,6 +561,7 @@ class Pipeline:
             # estimate), or the configuration leaves the scatter unmodelled
             noise = replace(noise, position_sigma_m=0.0)
         self.noise = noise
+        hold_s = cfg.filter.coast_remainder_updates / SIDESLIP_RATE_HZ
         nf = NavFilter(
             noise,
             self._pairs,
@@ -579,13 +580,9 @@ class Pipeline:
             coast_remainder_updates=cfg.filter.coast_remainder_updates,
             coast_after_s=cfg.filter.coast_after_s,
             # a coast's remainder lasts its count of updates after the coast
-            coast_hold_s=cfg.filter.coast_remainder_updates / SIDESLIP_RATE_HZ,
+            coast_hold_s=hold_s,
             # a hand-over's attitude errors are a coast's: counted so for as long
-            handover_hold_s=(
-                cfg.filter.coast_remainder_updates / SIDESLIP_RATE_HZ
-                if cfg.initial.alignment == "config"
-                else 0.0
-            ),
+            handover_hold_s=hold_s if cfg.initial.alignment == "config" else 0.0,
         )
         nf.body_velocity_log = self.body_velocity_log
         self.nf = nf
