@@ -782,6 +782,28 @@ class NavFilter:
         p[VEL, VEL] += 0.5 * (ff + ff.T)
         self.P = p
 
+    def remove_feature_residual(self, r_b: np.ndarray, t_s: float) -> None:
+        """Take a constant error in the last block's solved ``[wdot, f]`` out of the state.
+
+        ``r_b`` (6,) is the error (FRD; rad/s^2 and m/s^2) the block's ``t_s``
+        seconds were propagated with. It put ``r t`` into the rate,
+        ``r t^2 / 2`` (body) into the attitude, ``C r t`` into the velocity and
+        ``C r t^2 / 2`` into the position (``C`` the block-end attitude), for a
+        residual the previous block's last sample carried too (the trapezoid's first
+        interval starts there); this removes them from the nominal state. Left: the
+        block's turn, the propagation's second-order attitude-covariance factor on
+        ``C f`` and what an attitude residual does through gravity. The covariance is
+        left as it is.
+        """
+        r = np.asarray(r_b, dtype=float)
+        t2 = 0.5 * t_s * t_s
+        c = dcm_from_quat(self.q)
+        self.w = self.w - t_s * r[0:3]
+        self.q = quat_rotate_by_rotvec(self.q, -t2 * r[0:3], left=False)
+        dv = c @ r[3:6]
+        self.vel = self.vel - t_s * dv
+        self.pos = self.pos - t2 * dv
+
     def add_hold_noise(
         self, t_before_s: float, t_after_s: float, wdot_sigma_rps2: float, f_sigma_mps2: float
     ) -> None:

@@ -715,6 +715,7 @@ class Pipeline:
         # the forecast's error (see _forecast_noise): its noise floor, the block means'
         # own noise plus what the forecast carries of the history's
         self._fe_persistence = cfg.filter.forecast_error_persistence if se is not None else 0.0
+        self._fe_correct = bool(cfg.filter.forecast_correction) and se is not None
         self._fe_d2 = np.zeros(6)
         #: The noise in :attr:`last_forecast_error` of a block of one sample, (6,):
         #: ``(1 + g) N`` with ``N`` the raw feature noise variance per sample and ``g``
@@ -856,6 +857,11 @@ class Pipeline:
             self.last_forecast_error = self._last_mean[0:6] - nf.bias[0:6] - phi_hat[0:6]
             if self._fe_persistence > 0.0:
                 self._forecast_noise(self.last_forecast_error, n_ok, kk * dt)
+            if self._fe_correct and np.all(np.isfinite(self.last_forecast_error)):
+                # what the forecast's error left in the block, out of the state and history
+                r6 = self._se[0:6, 0:6] @ self.last_forecast_error
+                nf.remove_feature_residual(r6, kk * dt)
+                self._last_mean[0:6] -= r6
         if row == self._hist.shape[0]:
             # a sliding window: keep the rows the next forecasts read
             self._hist[:window] = self._hist[row - window : row]

@@ -167,6 +167,16 @@ class FilterSettings:
     and 1 and 2 over ten draws of 50 (README, "the forecast's error"): 2 meets the
     target on one draw, 1 on none. 0 switches it off.
 
+    ``forecast_correction`` (default false): with a forecast compensation, after
+    each block remove from the nominal rate, attitude, velocity and position what
+    the forecast's measured error left in the block's features (``E_6 d``, ``d``
+    the block's mean less its forecast, :attr:`filters.pipeline.Pipeline.last_forecast_error`;
+    ``filters.ekf.NavFilter.remove_feature_residual``), and from the history the next
+    forecasts read. The forecast's error in a given manoeuvre has the same sign in every
+    run, which no noise term removes; on ``tactical`` it biased the lift law's ``K``
+    by 1.5 sigma after the roll-out (README, "`tactical`'s angle of attack after the
+    roll-out"). Off by default until measured over the draws of both flights.
+
     ``coast_remainder_updates`` (>= 1, default 40) replaces ``remainder_updates``
     while the filter coasts: from ``coast_after_s`` (default 1 s) or five intervals
     of the GPS fixes received, whichever is longer, without an accepted GPS position until
@@ -199,6 +209,7 @@ class FilterSettings:
     coast_remainder_updates: float = 40.0
     coast_after_s: float = 1.0
     forecast_error_persistence: float = 2.0
+    forecast_correction: bool = False
 
     def __post_init__(self) -> None:
         if self.compensation not in COMPENSATIONS:

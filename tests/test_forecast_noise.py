@@ -135,3 +135,60 @@ def test_forecast_error_persistence_is_checked():
         FilterSettings(forecast_error_persistence=-1.0)
     with pytest.raises(ValueError, match="forecast_error_persistence must be"):
         FilterSettings(forecast_error_persistence=float("nan"))
+
+
+@pytest.mark.parametrize("part", ["force", "angular acceleration"])
+def test_remove_feature_residual_undoes_a_constant_feature_error(part):
+    """A block propagated with ``[wdot, f] + r`` and then :meth:`remove_feature_residual`
+    equals the block propagated without ``r`` (the previous block's last sample
+    carrying it too): the force's velocity to the propagation's second-order
+    attitude-covariance factor at a constant attitude, its
+    position to the trapezoid's half-sample (2 % here), the angular acceleration's
+    rate and attitude exactly. What an attitude residual does to the velocity through
+    gravity (second order) is left."""
+    r = np.zeros(6)
+    if part == "force":
+        r[3:6] = [0.03, -0.02, 0.05]
+    else:
+        r[0:3] = [0.02, -0.01, 0.03]
+    k, dt = 10, 1e-3
+    wdot = np.zeros((k, 3))
+    f = np.tile([0.0, 0.0, -9.80665], (k, 1))
+    clean, _, _ = level_filter()
+    dirty, _, _ = level_filter()
+    # the trapezoid's first interval starts on the previous block's last sample, which
+    # carried the same residual (a residual constant over consecutive blocks)
+    clean.set_last_sample(wdot[0], f[0])
+    dirty.set_last_sample(wdot[0] + r[0:3], f[0] + r[3:6])
+    clean.propagate(wdot, f, dt)
+    dirty.propagate(wdot + r[0:3], f + r[3:6], dt)
+    moved = np.abs(dirty.vel - clean.vel).max() + np.abs(dirty.w - clean.w).max()
+    assert moved > 1e-6  # the residual did move the state
+    pos_moved = np.abs(dirty.pos - clean.pos).max()
+    dirty.remove_feature_residual(r, k * dt)
+    np.testing.assert_allclose(dirty.w, clean.w, atol=1e-15)
+    np.testing.assert_allclose(dirty.q, clean.q, atol=1e-12)
+    if part == "force":
+        # the propagation takes E[C f] (its attitude covariance's second-order factor,
+        # 1e-4 of it here): the removal, C r t, leaves that part
+        assert np.abs(dirty.vel - clean.vel).max() <= 1e-3 * np.abs(r[3:6]).max() * k * dt
+        # the position: r t^2 / 2 against the trapezoid's own (K^2 + 1) dt^2 / 2
+        assert np.abs(dirty.pos - clean.pos).max() <= 0.03 * pos_moved
+
+
+def test_forecast_correction_is_a_setting_that_reaches_the_state():
+    """``filter.forecast_correction`` (off by default) changes the estimates of a
+    forecast-compensated run, and only when on."""
+    assert FilterSettings().forecast_correction is False
+    scn = load_flight(
+        "tactical",
+        ["run.rate_hz=200", "flight.legs=[{ duration_s = 3.0, ramp_s = 1.0, bank_deg = 30.0 }]"],
+    )
+    sim = simulate_flight(scn, 0)
+    ends = {}
+    for on in (False, True):
+        cfg = replace(sim.config, filter=replace(sim.config.filter, forecast_correction=on))
+        pipe = Pipeline(cfg)
+        _feed(pipe, sim.samples, sim.fixes, None)
+        ends[on] = (pipe.nf.w.copy(), pipe.nf.vel.copy())
+    assert not np.allclose(ends[True][0], ends[False][0], rtol=0.0, atol=1e-12)
