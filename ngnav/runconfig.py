@@ -164,8 +164,9 @@ class FilterSettings:
     of its variance one block counts (``1 + 2 sum_k rho_k`` of its autocorrelation;
     over ``tactical``'s roll-ins the angular acceleration's reads 0.72, 0.3 and 0.1
     at lags of 1, 2 and 5 blocks). 1, 2 and 3 were tried on 100 ``tactical`` runs
-    and 1 and 2 over ten draws of 50 (README, "the forecast's error"): 2 meets the
-    target on one draw, 1 on none. 0 switches it off.
+    and 1 and 2 over ten draws of 50 (README, "the forecast's error"): without
+    ``forecast_correction`` 2 meets the target on one draw, 1 on none; with it (as
+    ``tactical.toml`` ships) 1 meets it on two. 0 switches it off.
 
     ``forecast_correction`` (default false): with a forecast compensation, after
     each block remove from the nominal rate, attitude, velocity and position what
