@@ -422,6 +422,7 @@ def cmd_consistency(args: argparse.Namespace) -> int:
         from_s=args.from_s,
         reference=args.reference,
         sets=args.sets,
+        cycle_s=args.cycle,
     )
     if args.json:
         print(json.dumps(out, indent=2))
@@ -474,7 +475,30 @@ def cmd_consistency(args: argparse.Namespace) -> int:
                 f"{row['att']:6.2f} {row['rate']:6.2f} {row['all']:7.2f}"
                 + (f" {row['aoa']:6.2f}" if aoa else "")
             )
+    if "cycle" in out:
+        _print_cycle(out["cycle"])
     return 0
+
+
+def _print_cycle(rows: list[dict]) -> None:
+    aoa = "aoa" in rows[0]
+    print(
+        "  run-averaged NEES by phase in the cycle (3 dof blocks, all: 12 dof"
+        + (", aoa: 1 dof" if aoa else "")
+        + "; all's share of those epochs below / above its bounds)"
+    )
+    print(
+        "    phase s    pos    vel    att   rate     all"
+        + ("    aoa" if aoa else "")
+        + "   below  above"
+    )
+    for row in rows:
+        print(
+            f"    {row['phase_s']:7.3f} {row['pos']:6.2f} {row['vel']:6.2f} {row['att']:6.2f} "
+            f"{row['rate']:6.2f} {row['all']:7.2f}"
+            + (f" {row['aoa']:6.2f}" if aoa else "")
+            + f"  {100 * row['all_below']:5.1f}% {100 * row['all_above']:5.1f}%"
+        )
 
 
 def cmd_remainder(args: argparse.Namespace) -> int:
@@ -619,6 +643,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         metavar="S",
         help="also print each NEES block's run average over windows of S seconds",
+    )
+    p.add_argument(
+        "--cycle",
+        type=float,
+        metavar="S",
+        help="also print each NEES block's run average by phase within a cycle of S seconds "
+        "(0.2: the 5 Hz body-velocity updates), with the joint's shares below and above",
     )
     p.add_argument(
         "--from",

@@ -86,3 +86,28 @@ def test_block_mean_carries_its_standard_error_over_runs():
     assert out["mean"] == pytest.approx((10 * 7 / 3 + 20 * 2.5) / 30)
     assert out["mean_se"] == pytest.approx(np.std([1, 2, 3, 4], ddof=1) / 2, rel=1e-12)
     assert np.isnan(_block(per_run[:1], 3, 1)[0]["mean_se"])
+
+
+def test_cli_cycle_profile():
+    """``ngnav consistency --cycle 0.2`` as a real subprocess: twenty phases of the
+    filter's 0.01 s epochs, whose epoch-weighted means give back each block's mean,
+    with the joint's shares below and above; the text report prints one row per
+    phase; a cycle off the epoch grid fails with the reason."""
+    base = ("consistency", *SHORT_TACTICAL_ARGS, "--workers", "1", "--runs", "1")
+    out = json.loads(run_cli(*base, "--cycle", "0.2", "--json").stdout)
+    rows = out["cycle"]
+    assert [r["phase_s"] for r in rows] == pytest.approx(np.arange(20) * 0.01)
+    # epochs 0 .. E-1 fall on phase e mod 20: the first E mod 20 phases hold one more
+    n_epochs = round(60.0 / 0.01) + 1
+    counts = np.full(20, n_epochs // 20)
+    counts[: n_epochs % 20] += 1
+    for name in ("pos", "vel", "att", "rate", "all"):
+        phase_means = np.array([r[name] for r in rows])
+        mean = out["blocks"][f"NEES {name}"]["mean"]
+        assert np.sum(counts * phase_means) / counts.sum() == pytest.approx(mean, rel=1e-5)
+    assert all(0.0 <= r["all_below"] <= 1.0 and 0.0 <= r["all_above"] <= 1.0 for r in rows)
+    text = run_cli(*base, "--cycle", "0.2").stdout
+    assert "by phase in the cycle" in text
+    assert sum(line.startswith("      0.") for line in text.splitlines()) >= 20
+    bad = run_cli(*base, "--cycle", "0.215", check=False)
+    assert bad.returncode != 0 and "whole number" in bad.stderr
