@@ -455,6 +455,14 @@ class NavFilter:
         (a hand-over): its attitude errors, as large as a coast leaves, have not yet
         been renewed by any measurement (README, "the hand-over counted as a coast's
         end").
+    remainder_off_constraint : bool
+        After each accepted body-velocity update, keep on the constraint's own
+        direction the remainder's variance counted once and move the rest of the
+        count onto the velocity that offsets the attitude through the constraint
+        (:meth:`_move_count_off_constraint`). False (the default): the counted
+        variance stays on the constraint, which leaves the constraint's direction
+        several times too uncertain for the 10-30 ms until the next blocks' noise
+        covers it (README, "the count off the constraint").
 
     Attributes
     ----------
@@ -482,6 +490,7 @@ class NavFilter:
     coast_after_s: float = COAST_AFTER_S
     coast_hold_s: float = 0.0
     handover_hold_s: float = 0.0
+    remainder_off_constraint: bool = False
     counters: Counters = field(default_factory=Counters)
 
     def __post_init__(self) -> None:
@@ -1397,9 +1406,10 @@ class NavFilter:
     def _body_velocity_update(self, axis: int, sigma_v_mps: float) -> tuple[float, bool]:
         v_axis, h = self.body_velocity_model(self.q, self.vel, axis, self.aoa)
         rem = self.body_velocity_second_order(axis)
-        var = sigma_v_mps**2 + remainder_variance(
+        counted = remainder_variance(
             rem, self.current_remainder_updates(), self.attitude_remainder_updates
         )
+        var = sigma_v_mps**2 + counted
         dv_da = 0.0  # the model's change per radian of angle of attack: -(C t_b . v)
         if axis == VERTICAL:
             _, t_b = constraint_axes(VERTICAL, self.aoa)
@@ -1417,10 +1427,46 @@ class NavFilter:
             aoa = self.aoa if axis == VERTICAL else 0.0
             rec = (self.t_s, axis, self.q.copy(), self.vel.copy(), aoa, v_axis)
             rec += (h[0, ATT].copy(), h[0, VEL].copy(), dv_da, rem, float(var))
+        ph = self.P @ h[0] if self.remainder_off_constraint else None
         nis, ok = self._gated_update(np.array([-(v_axis + rem.mean)]), r, h, self.gate1)
+        if ok and ph is not None:
+            self._move_count_off_constraint(h[0], ph, var, counted - rem.var)
         if log is not None:
             log.append(BodyVelocityRecord(*rec, ok))
         return nis, ok
+
+    def _move_count_off_constraint(
+        self, h: np.ndarray, ph: np.ndarray, r: float, extra: float
+    ) -> None:
+        """After a body-velocity update: the count's extra variance off the constraint.
+
+        The update used ``R = r`` (m^2/s^2), of which ``extra`` is the remainder's
+        variance counted more than once; ``h`` (n,) is its Jacobian and ``ph`` (n,)
+        the prior ``P h^T``. The count stands for the remainder's persistence over
+        consecutive updates, an error that builds up in what the constraint does not
+        fix. On the constraint's own direction the posterior error is
+        ``(1 - h K) h dx - h K v`` whatever came before, so its variance takes ``v``'s
+        marginal variance, the remainder counted once. So the posterior's
+        ``extra K K^T`` (``K`` the gain, ``extra K K^T`` the count's share of
+        ``K R K^T``) becomes ``extra k k^T`` with ``k = K - u (h K)``, ``u`` along the
+        velocity part of ``h`` (``h u = 1``): ``h k = 0``, and only the velocity's rows
+        and columns change. The attitude keeps the whole count; the velocity takes the
+        part that, through the constraint, offsets it.
+        """
+        if extra <= 0.0:
+            return
+        k = ph / (float(h @ ph) + r)
+        hv = h[VEL]
+        nv = float(hv @ hv)
+        if nv <= 0.0:
+            return
+        kt = k.copy()
+        kt[VEL] -= hv * (float(h @ k) / nv)
+        p = self.P
+        p -= extra * np.outer(k, k)
+        p += extra * np.outer(kt, kt)
+        self.P = p
+        self._symmetrise()
 
     def current_remainder_updates(self) -> float:
         """The count of the whole remainder a body-velocity update uses now.

@@ -14,6 +14,7 @@ from filters.ekf import (
     VERTICAL,
     FilterNoise,
     NavFilter,
+    remainder_variance,
 )
 from filters.state import ATT, B_F, RATE, VEL
 from ngnav.conventions import gravity_n_mps2
@@ -667,3 +668,96 @@ def test_rate_jacobian_carries_the_forecast_compensations_return_of_the_rate_err
     assert 0.05 < miss < 0.1, miss
     with pytest.raises(ValueError, match="quad_feedback"):
         NavFilter(noise, PAIRS, np.zeros(3), quad_feedback=np.zeros((3, 3)))
+
+
+@pytest.mark.parametrize("axis", [LATERAL, VERTICAL])
+def test_count_moved_off_the_constraint(axis):
+    """``remainder_off_constraint``: after a body-velocity update whose R counts the
+    remainder several times, the constraint's own direction has the Joseph-form
+    variance of the update with the remainder counted once,
+    ``(1 - hK)^2 h P h^T + (hK)^2 (R - extra)``, and nothing but the velocity's rows
+    and columns differ from the plain update (the attitude keeps the whole count).
+
+    Set up at a coast-sized covariance where the remainder dominates R, with the
+    velocity's lateral (or wind-normal) part chosen so that the innovation is zero:
+    no state moves, so the attitude reset leaves P as filterpy's update gives it.
+    """
+    sigma = np.deg2rad(0.003)
+    filters = []
+    for on in (False, True):
+        nf, _, _ = _filter()
+        nf.remainder_off_constraint = on
+        rng = np.random.default_rng(11)
+        nf.q = quat_from_rotvec(np.array([0.2, 0.05, 1.0]))
+        c = dcm_from_quat(nf.q)
+        n_b = np.array([0.0, 1.0, 0.0]) if axis == LATERAL else np.array([0.0, 0.0, 1.0])
+        idx = np.r_[6:9, 3:6]
+        a = rng.normal(size=(6, 6))
+        scale = np.r_[[0.05] * 3, [1.0] * 3]
+        p = np.eye(nf.layout.n) * 1e-6
+        p[np.ix_(idx, idx)] = (a @ a.T) * np.outer(scale, scale) / 6.0
+        nf.P = p
+        nf.vel = 20.0 * c[:, 0]
+        for _ in range(30):  # the axis velocity that cancels the remainder's mean
+            mean2 = nf.body_velocity_second_order(axis).mean
+            nf.vel = 20.0 * c[:, 0] - mean2 * (c @ n_b)
+        v_axis, h = nf.body_velocity_model(nf.q, nf.vel, axis)
+        assert abs(v_axis + nf.body_velocity_second_order(axis).mean) < 1e-13
+        rem = nf.body_velocity_second_order(axis)
+        speed = np.hypot(nf.vel[0], nf.vel[1]) if axis == LATERAL else np.linalg.norm(nf.vel)
+        r0 = (speed * np.tan(sigma)) ** 2
+        counted = remainder_variance(rem)
+        extra = counted - rem.var
+        assert extra > 3.0 * (r0 + rem.var)  # the count dominates what is moved
+        if axis == LATERAL:
+            nf.update_sideslip(sigma, 5.0)
+        else:
+            nf.update_angle_of_attack(sigma, 5.0)
+        filters.append((nf, p, h[0], r0 + counted, extra))
+    (plain, p, h, r, extra), (moved, *_) = filters
+    np.testing.assert_array_equal(moved.vel, plain.vel)
+    np.testing.assert_array_equal(moved.q, plain.q)
+    # the plain update is filterpy's, with the counted R
+    _, p_ref = kf_update(np.zeros(plain.layout.n), p.copy(), np.zeros(1), np.array([[r]]), h[None])
+    np.testing.assert_allclose(plain.P, p_ref, rtol=0, atol=1e-15)
+    # only the velocity's rows and columns change
+    other = np.ones(plain.layout.n, dtype=bool)
+    other[VEL] = False
+    diff = moved.P - plain.P
+    np.testing.assert_allclose(diff[np.ix_(other, other)], 0.0, rtol=0, atol=1e-15)
+    assert np.abs(diff[VEL]).max() > 1e-3 * np.abs(plain.P[VEL, VEL]).max()
+    # the constraint's direction: the Joseph form with the remainder counted once
+    hph = float(h @ p @ h)
+    hk = hph / (hph + r)
+    want = (1.0 - hk) ** 2 * hph + hk**2 * (r - extra)
+    assert float(h @ moved.P @ h) == pytest.approx(want, rel=1e-6)
+    assert float(h @ plain.P @ h) == pytest.approx(want + hk**2 * extra, rel=1e-9)
+    np.linalg.cholesky(moved.P)  # still positive definite
+
+
+def test_remainder_off_constraint_is_a_setting_that_reaches_the_filter():
+    """``filter.remainder_off_constraint`` (off by default) reaches the filter a run
+    builds, from a scenario override as ``--set`` gives it: on a 3 s turn the
+    covariance differs, and the nominal state the first update meets is the same."""
+    from filters.pipeline import run_filter
+    from ngnav.flight_scenario import load_flight
+    from ngnav.runconfig import FilterSettings
+    from ngnav.simulate import simulate_flight
+
+    assert FilterSettings().remainder_off_constraint is False
+    ends = {}
+    for value in ("false", "true"):
+        scn = load_flight(
+            "tactical",
+            [
+                "run.rate_hz=200",
+                "flight.legs=[{ duration_s = 3.0, ramp_s = 1.0, bank_deg = 30.0 }]",
+                f"filter.remainder_off_constraint={value}",
+            ],
+        )
+        assert scn.filter.remainder_off_constraint is (value == "true")
+        sim = simulate_flight(scn, 0)
+        ends[value] = run_filter(sim.samples, sim.fixes, sim.config).estimates
+    off, on = ends["false"], ends["true"]
+    np.testing.assert_array_equal(off.pos_ned_m[0], on.pos_ned_m[0])
+    assert not np.allclose(off.cov_nav[-1], on.cov_nav[-1], rtol=1e-6, atol=0.0)
