@@ -461,7 +461,7 @@ class NavFilter:
         count onto the velocity that offsets the attitude through the constraint
         (:meth:`_move_count_off_constraint`). False (the default): the counted
         variance stays on the constraint, which leaves the constraint's direction
-        several times too uncertain for the 10-30 ms until the next blocks' noise
+        several times too uncertain for the 10-50 ms until the next blocks' noise
         covers it (README, "the count off the constraint").
 
     Attributes

@@ -199,7 +199,7 @@ class FilterSettings:
     covariance changes). The count stands for an error that persists over updates
     and builds up in what the constraint does not fix; on the constraint's own
     direction the error after the update is the current remainder, whose variance
-    is counted once. Counted whole there, the joint NEES dipped for 10-30 ms after
+    is counted once. Counted whole there, the joint NEES dipped for 10-50 ms after
     every 5 Hz update (``ngnav consistency --cycle 0.2``; README, "the count off the
     constraint"). Off in both scenarios: over ten draws of ``tactical`` it took the
     joint's pessimism away (misses 5 -> 3) but made the angle of attack more
