@@ -1480,10 +1480,7 @@ class NavFilter:
         ``remainder_updates``. Called once per update: a coasting call is counted
         (``counters.coast_model_updates``) and extends the hold.
         """
-        after = self.coast_after_s
-        if not math.isnan(self.fix_interval_s):
-            after = max(after, COAST_AFTER_FIXES * self.fix_interval_s)
-        coasting = self.t_s - self.t_last_position_fix > after
+        coasting = self._coasting()
         if coasting:
             self._coast_until = self.t_s + self.coast_hold_s
         if coasting or self.t_s < self._coast_until:
@@ -1493,6 +1490,24 @@ class NavFilter:
             self.counters.handover_model_updates += 1
             return self.coast_remainder_updates
         return self.remainder_updates
+
+    def _coasting(self) -> bool:
+        """More than ``coast_after_s`` (or five fix intervals) since the last accepted position."""
+        after = self.coast_after_s
+        if not math.isnan(self.fix_interval_s):
+            after = max(after, COAST_AFTER_FIXES * self.fix_interval_s)
+        return self.t_s - self.t_last_position_fix > after
+
+    def counts_as_coast(self) -> bool:
+        """Whether a body-velocity update now would use ``coast_remainder_updates``.
+
+        True while coasting, within ``coast_hold_s`` of the last coasting update and
+        within ``handover_hold_s`` of :meth:`initialise`: what
+        :meth:`current_remainder_updates` decides, without its counting (a query).
+        The pipeline runs the vehicle model at 5 Hz then, and at its own rate
+        otherwise (``FilterSettings.vehicle_model_rate_hz``).
+        """
+        return self._coasting() or self.t_s < max(self._coast_until, self._handover_until)
 
     def sideslip_second_order(self) -> Remainder:
         """:meth:`body_velocity_second_order` of the lateral axis (the sideslip model)."""

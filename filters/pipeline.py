@@ -71,7 +71,10 @@ FORECAST_ERROR_BLOCKS = 5
 #: 1 % of a block's feature noise (``E_6`` about 0.07), and skipping it saves the block's
 #: covariance arithmetic (at rest a 5-block mean of squares passes 2 with chance 0.075).
 FORECAST_ERROR_GATE = 2.0
-#: Rate of the zero-sideslip pseudo-measurement (when configured), Hz.
+#: Rate of the vehicle model's updates (sideslip and angle of attack, when configured)
+#: over the hand-over and coasts (``NavFilter.counts_as_coast``), where the coast's count
+#: is in updates at this rate; elsewhere ``filter.vehicle_model_rate_hz`` (this by
+#: default), Hz.
 SIDESLIP_RATE_HZ = 5.0
 #: The lift law's load, extrapolated from two block means to the block end:
 #: ``1.5 f_k - 0.5 f_k-1`` (a mean lags its block's end by half a block).
@@ -705,6 +708,7 @@ class Pipeline:
         self._with_dr = nf.layout.n_dr > 0
         self._slip_sigma = np.deg2rad(cfg.filter.sideslip_sigma_deg)
         self._aoa_sigma = np.deg2rad(cfg.filter.aoa_sigma_deg)
+        self._model_rate_hz = cfg.filter.vehicle_model_rate_hz
         self._t_last_slip = -np.inf
         self._f_load_prev: np.ndarray | None = None
         self._k_load_prev = 1  # samples measured in the block f_load_prev came from
@@ -768,6 +772,16 @@ class Pipeline:
         self._inv[r] = invalid
         self._chmask[r] = chmask
         self._n += m
+
+    def _model_interval_s(self, nf: NavFilter) -> float:
+        """Time between vehicle-model updates now, s.
+
+        ``1 / SIDESLIP_RATE_HZ`` while the filter counts the remainder as a coast's
+        (hand-over, coasts and their holds: ``coast_remainder_updates`` counts 5 Hz
+        updates), ``1 / filter.vehicle_model_rate_hz`` otherwise.
+        """
+        rate = SIDESLIP_RATE_HZ if nf.counts_as_coast() else self._model_rate_hz
+        return 1.0 / rate
 
     def _record(self) -> None:
         nf = self.nf
@@ -897,7 +911,7 @@ class Pipeline:
         if (
             (self._slip_sigma > 0 or self._aoa_sigma > 0)
             and self.use_gps
-            and nf.t_s - self._t_last_slip >= 1.0 / SIDESLIP_RATE_HZ - dt / 2
+            and nf.t_s - self._t_last_slip >= self._model_interval_s(nf) - dt / 2
             and nf.consecutive_velocity_rejects < MODEL_PAUSE_AFTER_VELOCITY_REJECTS
         ):
             # the vehicle model holds with or without fixes (outages included), but

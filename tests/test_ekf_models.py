@@ -761,3 +761,50 @@ def test_remainder_off_constraint_is_a_setting_that_reaches_the_filter():
     off, on = ends["false"], ends["true"]
     np.testing.assert_array_equal(off.pos_ned_m[0], on.pos_ned_m[0])
     assert not np.allclose(off.cov_nav[-1], on.cov_nav[-1], rtol=1e-6, atol=0.0)
+
+
+def test_vehicle_model_rate_holds_5_hz_over_the_hand_over_and_its_own_rate_after():
+    """``filter.vehicle_model_rate_hz``: the sideslip and angle-of-attack updates run
+    at 5 Hz while the filter counts the remainder as a coast's (``tactical``'s 8 s
+    hand-over hold: ``coast_remainder_updates`` 40 over 5 Hz) and at the set rate
+    after it, each axis once per update time; the default (5 Hz) keeps them at 5 Hz."""
+    from filters.pipeline import run_filter
+    from ngnav.flight_scenario import load_flight
+    from ngnav.runconfig import FilterSettings
+    from ngnav.simulate import simulate_flight
+
+    assert FilterSettings().vehicle_model_rate_hz == 5.0
+    with pytest.raises(ValueError, match="vehicle_model_rate_hz"):
+        FilterSettings(vehicle_model_rate_hz=0.0)
+    times = {}
+    for rate in ("5", "1"):
+        scn = load_flight(
+            "tactical",
+            [
+                "run.rate_hz=200",
+                "flight.legs=[{ duration_s = 12.0, ramp_s = 1.0, bank_deg = 30.0 }]",
+                f"filter.vehicle_model_rate_hz={rate}",
+            ],
+        )
+        assert scn.filter.vehicle_model_rate_hz == float(rate)
+        sim = simulate_flight(scn, 0)
+        log: list = []
+        run_filter(sim.samples, sim.fixes, sim.config, body_velocity_log=log)
+        t = np.array([rec.t_s for rec in log])
+        axes = np.array([rec.axis for rec in log])
+        # both axes at every update time
+        np.testing.assert_array_equal(t[axes == LATERAL], t[axes == VERTICAL])
+        times[rate] = t[axes == LATERAL]
+    hold_s = 40.0 / 5.0
+    for rate, t in times.items():
+        gaps = np.diff(t)
+        in_hold = t[1:] <= t[0] + hold_s
+        np.testing.assert_allclose(gaps[in_hold], 0.2, atol=0.006)
+        want = 0.2 if rate == "5" else 1.0
+        after = t[:-1] >= t[0] + hold_s
+        assert after.sum() >= 3
+        np.testing.assert_allclose(gaps[after], want, atol=0.006)
+    np.testing.assert_array_equal(
+        times["5"][times["5"] <= times["5"][0] + hold_s - 0.1],
+        times["1"][times["1"] <= times["1"][0] + hold_s - 0.1],
+    )
