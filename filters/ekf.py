@@ -1460,11 +1460,12 @@ class NavFilter:
         nv = float(hv @ hv)
         if nv <= 0.0:
             return
-        kt = k.copy()
-        kt[VEL] -= hv * (float(h @ k) / nv)
+        # k k^T - kt kt^T = k d^T + d k^T - d d^T with d = k - kt, nonzero on VEL only
+        d = hv * (float(h @ k) / nv)
         p = self.P
-        p -= extra * np.outer(k, k)
-        p += extra * np.outer(kt, kt)
+        p[VEL, :] -= extra * np.outer(d, k)
+        p[:, VEL] -= extra * np.outer(k, d)
+        p[VEL, VEL] += extra * np.outer(d, d)
         self.P = p
         self._symmetrise()
 
