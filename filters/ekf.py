@@ -58,7 +58,7 @@ from ngnav.rotation import (
 #: (measured on ``uav-survey``, 6 runs: lag-1 correlation 0.97 in the outage, 0.8 while
 #: GPS holds); as white noise the filter would average it down over many updates and
 #: turn optimistic in the coast. Counting it 4 times treats one remainder in four
-#: updates (0.8 s) as new: see README ("the sideslip remainder") for what 1, 4, 10 and
+#: updates (0.8 s) as new: see docs/filter-notes.md ("the sideslip remainder") for what 1, 4, 10 and
 #: 40 gave.
 SIDESLIP_REMAINDER_UPDATES = 4.0
 #: Times the body-velocity updates count the variance of the remainder's attitude-product
@@ -67,7 +67,7 @@ SIDESLIP_REMAINDER_UPDATES = 4.0
 #: model: the rotation about the constraint axis, the pitch, times the roll about the
 #: velocity), so no update shrinks it and it lasts as long as the tilt errors do: 40 is
 #: the remainder's integrated autocorrelation measured on ``uav-survey``'s outage (38-41
-#: updates, README "the sideslip remainder"; ``ngnav remainder`` measures it on any
+#: updates, docs/filter-notes.md "the sideslip remainder"; ``ngnav remainder`` measures it on any
 #: flight). Both counts are the defaults of ``filter.remainder_updates`` and
 #: ``filter.attitude_remainder_updates``. Counted like the rest (4) it turned a hand-over's
 #: 1 deg roll and pitch errors into a pitch and angle of attack 2-3 times surer than
@@ -95,7 +95,7 @@ COAST_AFTER_FIXES = 5.0
 #: noise is the noise in the predicted angle, and the update's gain times its innovation
 #: then has a mean (``-K Var(u)`` along ``u``): errors in variables, which push the offset
 #: and ``K`` apart along the direction a steady load cannot see (``uav-survey``, 12 runs:
-#: +0.58 / -0.53 sigma at 540 s, -0.00 / +0.08 with the lag; README "the lift law's
+#: +0.58 / -0.53 sigma at 540 s, -0.00 / +0.08 with the lag; docs/filter-notes.md "the lift law's
 #: Jacobian takes the load two blocks back"). The pipeline's load is extrapolated from
 #: this block and the last one, so two blocks back is the nearest load whose noise is
 #: independent of it.
@@ -453,7 +453,7 @@ class NavFilter:
         remainder ``coast_remainder_updates`` times, as after a coast (s, >= 0;
         default 0). The pipeline passes the coast's hold for a configured alignment
         (a hand-over): its attitude errors, as large as a coast leaves, have not yet
-        been renewed by any measurement (README, "the hand-over counted as a coast's
+        been renewed by any measurement (docs/filter-notes.md, "the hand-over counted as a coast's
         end").
     remainder_off_constraint : bool
         After each accepted body-velocity update, keep on the constraint's own
@@ -462,7 +462,7 @@ class NavFilter:
         (:meth:`_move_count_off_constraint`). False (the default): the counted
         variance stays on the constraint, which leaves the constraint's direction
         several times too uncertain for the 10-50 ms until the next blocks' noise
-        covers it (README, "the count off the constraint").
+        covers it (docs/filter-notes.md, "the count off the constraint").
 
     Attributes
     ----------

@@ -148,10 +148,10 @@ class FilterSettings:
     consecutive updates (at ``vehicle_model_rate_hz``) that share one value of it
     (``filters.ekf.remainder_variance``; the attitude part never fewer times than
     the whole). The defaults, 4 and 40, are what ``uav-survey`` was tuned and
-    measured with (README, "the sideslip remainder"); ``tactical`` counts the
+    measured with (docs/filter-notes.md, "the sideslip remainder"); ``tactical`` counts the
     attitude part 7 times, its measured persistence after the hand-over, which
     counts the whole remainder ``coast_remainder_updates`` times for the coast's
-    hold (a configured alignment; README, "the hand-over counted as a coast's
+    hold (a configured alignment; docs/filter-notes.md, "the hand-over counted as a coast's
     end"). ``ngnav remainder`` measures what a flight's remainders actually need,
     against its truth.
 
@@ -164,7 +164,7 @@ class FilterSettings:
     of its variance one block counts (``1 + 2 sum_k rho_k`` of its autocorrelation;
     over ``tactical``'s roll-ins the angular acceleration's reads 0.72, 0.3 and 0.1
     at lags of 1, 2 and 5 blocks). 1, 2 and 3 were tried on 100 ``tactical`` runs
-    and 1 and 2 over ten draws of 50 (README, "the forecast's error"): without
+    and 1 and 2 over ten draws of 50 (docs/filter-notes.md, "the forecast's error"): without
     ``forecast_correction`` 2 meets the target on one draw, 1 on none; with it (as
     ``tactical.toml`` ships) 1 meets it on two. 0 switches it off.
 
@@ -175,13 +175,13 @@ class FilterSettings:
     ``filters.ekf.NavFilter.remove_feature_residual``), and from the history the next
     forecasts read. The forecast's error in a given manoeuvre has the same sign in every
     run, which no noise term removes; on ``tactical`` it biased the lift law's ``K``
-    by 1.5 sigma after the roll-out (README, "`tactical`'s angle of attack after the
+    by 1.5 sigma after the roll-out (docs/filter-notes.md, "`tactical`'s angle of attack after the
     roll-out"). Off by default; ``tactical.toml`` turns it on with persistence 1, which
     over ten draws of 50 runs cut the misses below 90 % from 19 to 13 and centred the
     attitude and the angle of attack (persistence 0 with a halved angle-of-attack walk
-    turned the rate, attitude and angle of attack optimistic; README, "the forecast's
+    turned the rate, attitude and angle of attack optimistic; docs/filter-notes.md, "the forecast's
     error taken out of the state"). On ``uav-survey``'s five draws it left the same
-    misses, each a little smaller, so the survey ships without it (README).
+    misses, each a little smaller, so the survey ships without it (docs/filter-notes.md).
 
     ``coast_remainder_updates`` (>= 1, default 40) replaces ``remainder_updates``
     while the filter coasts: from ``coast_after_s`` (default 1 s) or five intervals
@@ -200,7 +200,7 @@ class FilterSettings:
     and builds up in what the constraint does not fix; on the constraint's own
     direction the error after the update is the current remainder, whose variance
     is counted once. Counted whole there, the joint NEES dipped for 10-50 ms after
-    every 5 Hz update (``ngnav consistency --cycle 0.2``; README, "the count off the
+    every 5 Hz update (``ngnav consistency --cycle 0.2``; docs/filter-notes.md, "the count off the
     constraint"). Off in both scenarios: over ten draws of ``tactical`` it took the
     joint's pessimism away (misses 5 -> 3) but made the angle of attack more
     optimistic (misses 5 -> 8), and on ``uav-survey`` (attitude count 40) it left the
@@ -213,7 +213,7 @@ class FilterSettings:
     ``attitude_remainder_updates`` count updates at this rate. Updating about once per
     decorrelation interval of the remainder, consecutive updates share little of it and
     the count can be 1, which removes the dip the count makes after each update
-    (README, "the vehicle model at the remainder's own interval"). Both scenarios
+    (docs/filter-notes.md, "the vehicle model at the remainder's own interval"). Both scenarios
     keep 5 Hz: at 1 Hz ``tactical``'s rate read optimistic over ten draws (3.06) and
     ``uav-survey``'s dip stayed (its attitude part still counted 8 times).
     """
