@@ -31,7 +31,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
 
 import numpy as np
 from filterpy.kalman import predict as kf_predict
@@ -39,6 +38,24 @@ from filterpy.kalman import update as kf_update
 from scipy.stats import chi2
 
 from filters.state import ATT, B_F, B_WDOT, N_NAV, POS, RATE, VEL, StateLayout, b_quad
+from filters.updates import quadratic_form, update_correlated
+from filters.vehicle_model import (
+    ATTITUDE_REMAINDER_UPDATES,
+    COAST_AFTER_FIXES,
+    COAST_AFTER_S,
+    COAST_REMAINDER_UPDATES,
+    LATERAL,
+    LIFT_JACOBIAN_LAG_BLOCKS,
+    SIDESLIP_REMAINDER_UPDATES,
+    VERTICAL,
+    BodyVelocityRecord,
+    Remainder,
+    attitude_product_matrix,
+    blend_spread_var,
+    constraint_axes,
+    remainder_moments,
+    remainder_variance,
+)
 from ngnav.compensation import QUAD_PAIRS
 from ngnav.conventions import gravity_n_mps2
 from ngnav.flight import quat_from_euler
@@ -52,55 +69,6 @@ from ngnav.rotation import (
     skew,
 )
 
-#: Times the sideslip update counts the variance of its second-order remainder
-#: (:meth:`NavFilter.sideslip_second_order`). The remainder is a function of errors
-#: that change over seconds, so consecutive 5 Hz updates see nearly the same value
-#: (measured on ``uav-survey``, 6 runs: lag-1 correlation 0.97 in the outage, 0.8 while
-#: GPS holds); as white noise the filter would average it down over many updates and
-#: turn optimistic in the coast. Counting it 4 times treats one remainder in four
-#: updates (0.8 s) as new: see docs/filter-notes.md ("the sideslip remainder") for what 1, 4, 10 and
-#: 40 gave.
-SIDESLIP_REMAINDER_UPDATES = 4.0
-#: Times the body-velocity updates count the variance of the remainder's attitude-product
-#: part (the ``dtheta^T A dtheta / 2`` of :meth:`NavFilter.body_velocity_second_order`).
-#: That part multiplies two attitude errors the constraint cannot see (for the sideslip
-#: model: the rotation about the constraint axis, the pitch, times the roll about the
-#: velocity), so no update shrinks it and it lasts as long as the tilt errors do: 40 is
-#: the remainder's integrated autocorrelation measured on ``uav-survey``'s outage (38-41
-#: updates, docs/filter-notes.md "the sideslip remainder"; ``ngnav remainder`` measures it on any
-#: flight). Both counts are the defaults of ``filter.remainder_updates`` and
-#: ``filter.attitude_remainder_updates``. Counted like the rest (4) it turned a hand-over's
-#: 1 deg roll and pitch errors into a pitch and angle of attack 2-3 times surer than
-#: their errors (``tactical``, 16 runs, 2-4 s: attitude NEES 7.3, angle of attack 6.1).
-#: Since a hand-over counts as a coast's end (``NavFilter.handover_hold_s``) a flight
-#: may count it as long as it lasts after the hand-over: ``tactical`` sets 7.
-ATTITUDE_REMAINDER_UPDATES = 40.0
-#: Times the body-velocity updates count the whole remainder in a coast: from
-#: :data:`COAST_AFTER_S` without an accepted GPS position until ``coast_hold_s`` after
-#: the last such update. Through a coast nothing renews the errors the remainder is made
-#: of, and ``ngnav remainder`` measures its persistence there at 42 updates
-#: (``uav-survey``, 8 runs, 300-330 s; 5-21 while GPS holds): counted 4 times the
-#: coast's end read a joint NEES of 17.9 over 325-345 s (50 runs). The default of
-#: ``filter.coast_remainder_updates``.
-COAST_REMAINDER_UPDATES = 40.0
-#: Time without an accepted GPS position after which the filter is coasting, s: five
-#: fixes at 5 Hz, so one rejected fix (a glitch) is not a coast. The default of
-#: ``filter.coast_after_s``.
-COAST_AFTER_S = 1.0
-#: ...or this many intervals of the fixes received, whichever is longer.
-COAST_AFTER_FIXES = 5.0
-
-#: Blocks by which the lift law's Jacobian load lags the load the angle is predicted
-#: with. The angle's sensitivity to ``K`` is the load ``u``; taken from this block, its
-#: noise is the noise in the predicted angle, and the update's gain times its innovation
-#: then has a mean (``-K Var(u)`` along ``u``): errors in variables, which push the offset
-#: and ``K`` apart along the direction a steady load cannot see (``uav-survey``, 12 runs:
-#: +0.58 / -0.53 sigma at 540 s, -0.00 / +0.08 with the lag; docs/filter-notes.md "the lift law's
-#: Jacobian takes the load two blocks back"). The pipeline's load is extrapolated from
-#: this block and the last one, so two blocks back is the nearest load whose noise is
-#: independent of it.
-LIFT_JACOBIAN_LAG_BLOCKS = 2
-
 #: Consecutive fixes after an outage that fail the position gate before the filter is put
 #: on the fix anyway. The first fix after an outage resets position and velocity when it
 #: passes the gate (a glitch then is one fix off, rejected); but a coast that ended more
@@ -109,19 +77,6 @@ LIFT_JACOBIAN_LAG_BLOCKS = 2
 #: ``uav-survey`` run 11 off for 5 s after its outage. Three fixes in a row that disagree
 #: with the coast are the receiver, not a glitch.
 GAP_RESET_AFTER_REJECTS = 3
-
-#: FRD body axes of the vehicle-model pseudo-measurements: lateral (sideslip) and
-#: vertical (angle of attack).
-LATERAL = 1
-VERTICAL = 2
-
-#: Standard-normal grid (41 points over +-6 sigma) and its normalised Gaussian weights:
-#: the lift-off blend's spread over a speed error (:meth:`NavFilter.blend_remainder_var`).
-#: The blend is piecewise polynomial, which Gauss-Hermite rules integrate badly near its
-#: ends (7 points: off by up to 100 %); this grid agrees with 4e6 sampled errors within
-#: their standard error (scratch check, the blend's start, middle and end).
-_BLEND_Z = np.linspace(-6.0, 6.0, 41)
-_BLEND_W = np.exp(-0.5 * _BLEND_Z**2) / np.exp(-0.5 * _BLEND_Z**2).sum()
 
 
 def _product_derivatives(pairs: Sequence[Sequence[int]]) -> np.ndarray:
@@ -139,159 +94,6 @@ def _product_derivatives(pairs: Sequence[Sequence[int]]) -> np.ndarray:
 #: The (attitude, velocity) error rows of the body-velocity models' second-order term.
 _DTHETA_DV = np.r_[ATT, VEL]
 _DTHETA_DV_IX = np.ix_(_DTHETA_DV, _DTHETA_DV)
-
-
-def constraint_axes(axis: int, aoa_rad: float) -> tuple[np.ndarray, np.ndarray]:
-    """Constraint axis ``n_b`` and the wind x axis ``t_b`` (FRD) at angle of attack ``aoa_rad``.
-
-    :data:`LATERAL`: ``n_b = e_y``; :data:`VERTICAL`: ``n_b = [-sin a, 0, cos a]``.
-    ``t_b = [cos a, 0, sin a]`` either way (the body x axis at zero).
-    """
-    ca, sa = np.cos(aoa_rad), np.sin(aoa_rad)
-    t_b = np.array([ca, 0.0, sa])
-    if axis == LATERAL:
-        return np.array([0.0, 1.0, 0.0]), t_b
-    if axis == VERTICAL:
-        return np.array([-sa, 0.0, ca]), t_b
-    raise ValueError(f"axis must be LATERAL (1) or VERTICAL (2), got {axis}")
-
-
-def attitude_product_matrix(a_ned: np.ndarray, v_ned_mps: np.ndarray) -> np.ndarray:
-    """``A = (a v^T + v a^T) / 2 - (a . v) I`` (3, 3), m/s per rad^2.
-
-    The velocity along a constraint axis ``a`` (NED) of a body turned by the small
-    NED rotation ``dtheta`` holds ``dtheta^T A dtheta / 2`` beyond its linear term
-    (:meth:`NavFilter.body_velocity_second_order`).
-    """
-    a = np.asarray(a_ned, dtype=float)
-    v = np.asarray(v_ned_mps, dtype=float)
-    return 0.5 * (np.outer(a, v) + np.outer(v, a)) - float(a @ v) * np.eye(3)
-
-
-class Remainder(NamedTuple):
-    """A body-velocity model's second-order remainder (m/s; variances m^2/s^2).
-
-    ``mean_att`` and ``var_att`` are the mean and variance of its attitude-product
-    part alone (``dtheta^T A dtheta / 2``), the part no update of the model shrinks.
-    """
-
-    mean: float
-    var: float
-    var_att: float
-    mean_att: float = 0.0
-
-
-class BodyVelocityRecord(NamedTuple):
-    """One vehicle-model update as the filter made it (``NavFilter.body_velocity_log``).
-
-    The nominal state it linearised at, the model's value and Jacobian there, and
-    the second-order remainder the update assumed: what
-    :mod:`filters.remainder_study` needs to measure the remainder actually left
-    against a truth.
-
-    Attributes
-    ----------
-    t_s : float
-        Filter time, s.
-    axis : int
-        :data:`LATERAL` (the sideslip model) or :data:`VERTICAL` (the angle of attack's).
-    q_nb : array (4,)
-        Nominal attitude, body (FRD) to NED, Hamilton scalar first.
-    vel_ned_mps : array (3,)
-        Nominal velocity, NED, m/s.
-    aoa_rad : float
-        The nominal angle of attack the vertical axis was taken at (0 for the lateral), rad.
-    v_axis_mps : float
-        The model's velocity along its constraint axis at the nominal state, m/s.
-    h_att, h_vel : arrays (3,)
-        Its Jacobian on the NED attitude error (m/s per rad) and on the velocity error.
-    dv_daoa_mps : float
-        Its change per radian of angle of attack, ``-(C t_b) . v`` (0 for the lateral),
-        m/s per rad.
-    remainder : Remainder
-        The second-order remainder's mean and variances at the update.
-    r_m2ps2 : float
-        The update's R: the sigma's variance plus the remainder as counted (and, for the
-        angle-of-attack model, the load's noise and the lift-off blend's), m^2/s^2.
-    accepted : bool
-        Whether the update passed its gate.
-    """
-
-    t_s: float
-    axis: int
-    q_nb: np.ndarray
-    vel_ned_mps: np.ndarray
-    aoa_rad: float
-    v_axis_mps: float
-    h_att: np.ndarray
-    h_vel: np.ndarray
-    dv_daoa_mps: float
-    remainder: Remainder
-    r_m2ps2: float
-    accepted: bool
-
-
-def remainder_variance(
-    rem: Remainder,
-    updates: float = SIDESLIP_REMAINDER_UPDATES,
-    attitude_updates: float = ATTITUDE_REMAINDER_UPDATES,
-) -> float:
-    """What a body-velocity update adds to R for its remainder, m^2/s^2.
-
-    The variance counted ``updates`` times (default :data:`SIDESLIP_REMAINDER_UPDATES`)
-    and its attitude-product part ``attitude_updates`` times (default
-    :data:`ATTITUDE_REMAINDER_UPDATES`), but never fewer times than the whole
-    (``max(attitude_updates, updates)``: a coast's or hand-over's count covers the
-    attitude part too): each count is the number of consecutive updates that share
-    one value of that part.
-    """
-    return updates * rem.var + max(attitude_updates - updates, 0.0) * rem.var_att
-
-
-def update_correlated(
-    x: np.ndarray,
-    p: np.ndarray,
-    z: np.ndarray,
-    r: np.ndarray,
-    h: np.ndarray,
-    m: np.ndarray | None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Kalman update whose measurement noise ``v`` is correlated with the state error.
-
-    As filterpy's ``update(x, P, z, R, H)`` (residual ``z - H x``), but with
-    ``m`` (n, nz) = ``E[dx v^T]``, the prior error's covariance with the noise (here:
-    the propagation noise of the block the measurement was made over). filterpy's
-    update runs on the state augmented with ``v`` (covariance ``[[P, M], [M^T, R]]``,
-    ``H_a = [H, I]``, no further noise), which gives the correlated-noise filter
-    (Simon, *Optimal State Estimation*, 7.1): ``S = H P H^T + H M + M^T H^T + R``,
-    ``K = (P H^T + M) S^-1``, ``P+ = P - K (H P + M^T)``; the noise rows are dropped.
-    With ``m`` None (independent noise) it is filterpy's plain update.
-    """
-    if m is None:
-        return kf_update(x, p, z, r, h)
-    n, nz = x.shape[0], z.shape[0]
-    pa = np.empty((n + nz, n + nz))
-    pa[:n, :n] = p
-    pa[:n, n:] = m
-    pa[n:, :n] = m.T
-    pa[n:, n:] = r
-    ha = np.hstack([h, np.eye(nz)])
-    xa, pa = kf_update(np.concatenate([x, np.zeros(nz)]), pa, z, np.zeros((nz, nz)), ha)
-    return xa[:n], pa[:n, :n]
-
-
-def _quadratic_form(y: np.ndarray, s: np.ndarray) -> float:
-    """``y^T S^-1 y`` for a symmetric positive definite S (closed form for 3 x 3)."""
-    if y.shape[0] != 3:
-        return float(y @ np.linalg.solve(s, y))
-    (a, b, c), (_, d, e), (_, _, f) = s.tolist()
-    # adjugate of the symmetric 3 x 3 matrix
-    ia, ib, ic = d * f - e * e, c * e - b * f, b * e - c * d
-    id_, ie, if_ = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * ia + b * ib + c * ic
-    x, yy, z = y.tolist()
-    num = ia * x * x + id_ * yy * yy + if_ * z * z + 2.0 * (ib * x * yy + ic * x * z + ie * yy * z)
-    return num / det if det > 0.0 else float("inf")
 
 
 class CovarianceError(RuntimeError):
@@ -1048,7 +850,7 @@ class NavFilter:
         if m is not None:
             hm = h @ m
             s += hm + hm.T
-        nis = _quadratic_form(y, s)
+        nis = quadratic_form(y, s)
         if nis > self.gate_q:
             self.counters.rate_rejected += 1
             return nis
@@ -1163,15 +965,15 @@ class NavFilter:
         rp = np.diag(np.broadcast_to(np.asarray(pos_sigma_m, dtype=float), 3) ** 2)
         yp = pos_ned_m - (self.pos + cr + self.vel * dt_fix_s)
         sp = hp @ self.P @ hp.T + rp
-        nis_h = _quadratic_form(yp[0:2], sp[0:2, 0:2])
+        nis_h = quadratic_form(yp[0:2], sp[0:2, 0:2])
         nis_vt = float(yp[2] ** 2 / sp[2, 2]) if sp[2, 2] > 0 else float("inf")
         if reset:
-            nis_p = _quadratic_form(yp, sp)
+            nis_p = quadratic_form(yp, sp)
             passed = np.isfinite(nis_p) and nis_p <= self.gate3
             if passed or self._consec_rejects + 1 >= GAP_RESET_AFTER_REJECTS:
                 _, cwr, _, hv = self.gps_model(self.q, self.w)
                 yv = vel_ned_mps - (self.vel + cwr)
-                nis_v = _quadratic_form(yv, hv @ self.P @ hv.T + np.eye(3) * vel_sigma_mps**2)
+                nis_v = quadratic_form(yv, hv @ self.P @ hv.T + np.eye(3) * vel_sigma_mps**2)
                 self._put_on_fix(
                     pos_ned_m - self.vel * dt_fix_s, vel_ned_mps, pos_sigma_m, vel_sigma_mps
                 )
@@ -1298,11 +1100,7 @@ class NavFilter:
         sx = float(np.sqrt(max(u @ self.P[VEL, VEL] @ u, 0.0))) / width
         if x0 + 6.0 * sx <= 0.0 or x0 - 6.0 * sx >= 1.0:
             return 0.0
-        s0, ds0, _ = min_jerk_step(x0)
-        s, _, _ = min_jerk_step(x0 + sx * _BLEND_Z)
-        r = s - s0 - ds0 * sx * _BLEND_Z
-        mean = float(_BLEND_W @ r)
-        return max(float(_BLEND_W @ (r * r)) - mean * mean, 0.0)
+        return blend_spread_var(x0, sx)
 
     def set_load(self, f_b_mps2: np.ndarray, load_cov: np.ndarray | None = None) -> None:
         """Feed the lift law the block's specific force (FRD, m/s^2, biases removed).
@@ -1558,20 +1356,13 @@ class NavFilter:
             px = np.block(
                 [[px, cross[:, None]], [cross[None, :], np.array([[j @ self.P[ia, ia] @ j]])]]
             )
-        mp = m @ px
-        mpa = m[0:3, 0:3] @ px[0:3, 0:3]
-        return Remainder(
-            0.5 * float(np.trace(mp)),
-            0.5 * float(np.sum(mp * mp.T)),
-            0.5 * float(np.sum(mpa * mpa.T)),
-            0.5 * float(np.trace(mpa)),
-        )
+        return remainder_moments(m, px)
 
     def _gated_update(
         self, y: np.ndarray, r: np.ndarray, h: np.ndarray, gate: float | None = None
     ) -> tuple[float, bool]:
         s = h @ self.P @ h.T + r
-        nis = _quadratic_form(y, s)
+        nis = quadratic_form(y, s)
         if not np.isfinite(nis) or nis > (self.gate3 if gate is None else gate):
             return nis, False
         self.x, self.P = kf_update(self.x, self.P, y, r, h)

@@ -28,17 +28,10 @@ import numpy as np
 from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 
-from filters.ekf import (
-    LATERAL,
-    VERTICAL,
-    BodyVelocityRecord,
-    CovarianceError,
-    FilterNoise,
-    LostTrackError,
-    NavFilter,
-    update_correlated,
-)
+from filters.ekf import CovarianceError, FilterNoise, LostTrackError, NavFilter
 from filters.state import ATT, B_F, POS, RATE, VEL
+from filters.updates import update_correlated
+from filters.vehicle_model import LATERAL, VERTICAL, BodyVelocityRecord
 from ngnav.compensation import _QUAD_I, _QUAD_J
 from ngnav.conventions import G0_MPS2
 from ngnav.flight import FlightTruth, quat_from_euler
@@ -1154,7 +1147,7 @@ def run_filter(
         Called with the fraction done (0..1) now and then.
     body_velocity_log : list, optional
         Every sideslip and angle-of-attack update is appended to it as a
-        :class:`filters.ekf.BodyVelocityRecord` (what ``ngnav remainder`` measures).
+        :class:`filters.vehicle_model.BodyVelocityRecord` (what ``ngnav remainder`` measures).
 
     Raises
     ------

@@ -11,7 +11,7 @@ times in a GPS coast): the number of consecutive updates that share one value of
 it. Those counts are properties of a flight, not of the filter; this module
 measures them on simulated flights.
 
-At every such update of a run (:class:`filters.ekf.BodyVelocityRecord`) the truth
+At every such update of a run (:class:`filters.vehicle_model.BodyVelocityRecord`) the truth
 gives the remainder actually left (:func:`realized_remainder`; the lateral model's
 shown),
 
@@ -36,16 +36,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from filters.ekf import (
+from filters.ekf import CovarianceError
+from filters.evaluate import truth_aoa_rad, truth_indices
+from filters.pipeline import run_filter
+from filters.vehicle_model import (
     LATERAL,
     VERTICAL,
     BodyVelocityRecord,
-    CovarianceError,
     attitude_product_matrix,
     constraint_axes,
 )
-from filters.evaluate import truth_aoa_rad, truth_indices
-from filters.pipeline import run_filter
 from ngnav.flight import FlightTruth
 from ngnav.flight_scenario import FlightScenario
 from ngnav.rotation import dcm_from_quat, quat_conjugate, quat_multiply, quat_to_rotvec, skew

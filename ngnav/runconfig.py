@@ -146,7 +146,7 @@ class FilterSettings:
     times the sideslip and angle-of-attack updates count their second-order
     remainder's variance, and its attitude-product part, in R: the number of
     consecutive updates (at ``vehicle_model_rate_hz``) that share one value of it
-    (``filters.ekf.remainder_variance``; the attitude part never fewer times than
+    (``filters.vehicle_model.remainder_variance``; the attitude part never fewer times than
     the whole). The defaults, 4 and 40, are what ``uav-survey`` was tuned and
     measured with (docs/filter-notes.md, "the sideslip remainder"); ``tactical`` counts the
     attitude part 7 times, its measured persistence after the hand-over, which

@@ -6,17 +6,17 @@ from filterpy.kalman import update as kf_update
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from filters.ekf import (
+from filters.ekf import FilterNoise, NavFilter
+from filters.state import ATT, B_F, RATE, VEL
+from filters.vehicle_model import (
     ATTITUDE_REMAINDER_UPDATES,
     LATERAL,
     LIFT_JACOBIAN_LAG_BLOCKS,
     SIDESLIP_REMAINDER_UPDATES,
     VERTICAL,
-    FilterNoise,
-    NavFilter,
+    remainder_moments,
     remainder_variance,
 )
-from filters.state import ATT, B_F, RATE, VEL
 from ngnav.conventions import gravity_n_mps2
 from ngnav.flight import quat_from_euler
 from ngnav.frontend import ArraySolver
@@ -346,6 +346,32 @@ def test_body_velocity_second_order_terms_match_monte_carlo(axis, aoa_state):
     assert var > 1e-3  # coast-sized errors make the term matter (R is 1.2e-3 at 20 m/s for 0.1 deg)
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([6, 7]))
+def test_remainder_moments_are_those_of_a_gaussian_quadratic_form(seed, d):
+    """``q = x^T M x / 2`` with ``x ~ N(0, P)`` is ``sum_i lambda_i z_i^2 / 2`` over the
+    eigenvalues of ``L^T M L`` (``P = L L^T``): mean ``sum lambda / 2``, variance
+    ``sum lambda^2 / 2``; the attitude part is the same on the first three rows."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(d, d))
+    m = a + a.T
+    b = rng.normal(size=(d, d))
+    p = b @ b.T + 0.1 * np.eye(d)
+    rem = remainder_moments(m, p)
+
+    def exact(mm: np.ndarray, pp: np.ndarray) -> tuple[float, float]:
+        el = np.linalg.cholesky(pp)
+        lam = np.linalg.eigvalsh(el.T @ mm @ el)
+        return 0.5 * float(lam.sum()), 0.5 * float(lam @ lam)
+
+    mean, var = exact(m, p)
+    mean_att, var_att = exact(m[:3, :3], p[:3, :3])
+    assert rem.mean == pytest.approx(mean, rel=1e-9, abs=1e-12)
+    assert rem.var == pytest.approx(var, rel=1e-9)
+    assert rem.mean_att == pytest.approx(mean_att, rel=1e-9, abs=1e-12)
+    assert rem.var_att == pytest.approx(var_att, rel=1e-9)
+
+
 @pytest.mark.parametrize("axis", [LATERAL, VERTICAL])
 def test_body_velocity_update_counts_the_correlated_remainder(axis):
     """R is the sigma's body velocity squared (horizontal speed for the sideslip, 3-D
@@ -565,7 +591,7 @@ def test_correlated_update_is_filterpys_correlated_filter():
     own KalmanFilter.update_correlated, the textbook formulas, for random SPD inputs."""
     from filterpy.kalman import KalmanFilter
 
-    from filters.ekf import update_correlated
+    from filters.updates import update_correlated
 
     rng = np.random.default_rng(11)
     for _ in range(5):

@@ -320,7 +320,7 @@ def test_target_is_met(monte_carlo):
 def test_hand_over_is_consistent(monte_carlo):
     """Every 2 s window's attitude and angle-of-attack NEES inside the 6-run bounds,
     the hand-over included. Until the attitude-product part of the vehicle models'
-    remainder was counted as persistent (``ekf.ATTITUDE_REMAINDER_UPDATES``) the
+    remainder was counted as persistent (``vehicle_model.ATTITUDE_REMAINDER_UPDATES``) the
     hand-over's 1 deg tilt errors made the attitude and angle of attack optimistic
     at 2-6 s (attitude NEES 5-7.5 against a bound of 5.25); at this size the windows
     now read attitude 2.3-4.3 and angle of attack 0.8-1.5 in the first 14 s (2b4e58e;

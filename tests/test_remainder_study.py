@@ -7,13 +7,6 @@ import json
 import numpy as np
 import pytest
 
-from filters.ekf import (
-    COAST_REMAINDER_UPDATES,
-    LATERAL,
-    SIDESLIP_REMAINDER_UPDATES,
-    VERTICAL,
-    remainder_variance,
-)
 from filters.pipeline import run_filter
 from filters.remainder_study import (
     RHO_MAX,
@@ -24,6 +17,13 @@ from filters.remainder_study import (
     rotvec_between,
     updates_per_value,
     window_persistence,
+)
+from filters.vehicle_model import (
+    COAST_REMAINDER_UPDATES,
+    LATERAL,
+    SIDESLIP_REMAINDER_UPDATES,
+    VERTICAL,
+    remainder_variance,
 )
 from ngnav.flight import FlightTruth
 from ngnav.flight_scenario import load_flight

@@ -1,0 +1,57 @@
+"""Kalman updates beyond filterpy's plain one, built on it.
+
+:func:`update_correlated` is filterpy's ``update`` on the state augmented with the
+measurement noise, for noise correlated with the prior's error; :func:`quadratic_form`
+is the NIS ``y^T S^-1 y`` the gates test.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from filterpy.kalman import update as kf_update
+
+
+def update_correlated(
+    x: np.ndarray,
+    p: np.ndarray,
+    z: np.ndarray,
+    r: np.ndarray,
+    h: np.ndarray,
+    m: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Kalman update whose measurement noise ``v`` is correlated with the state error.
+
+    As filterpy's ``update(x, P, z, R, H)`` (residual ``z - H x``), but with
+    ``m`` (n, nz) = ``E[dx v^T]``, the prior error's covariance with the noise (here:
+    the propagation noise of the block the measurement was made over). filterpy's
+    update runs on the state augmented with ``v`` (covariance ``[[P, M], [M^T, R]]``,
+    ``H_a = [H, I]``, no further noise), which gives the correlated-noise filter
+    (Simon, *Optimal State Estimation*, 7.1): ``S = H P H^T + H M + M^T H^T + R``,
+    ``K = (P H^T + M) S^-1``, ``P+ = P - K (H P + M^T)``; the noise rows are dropped.
+    With ``m`` None (independent noise) it is filterpy's plain update.
+    """
+    if m is None:
+        return kf_update(x, p, z, r, h)
+    n, nz = x.shape[0], z.shape[0]
+    pa = np.empty((n + nz, n + nz))
+    pa[:n, :n] = p
+    pa[:n, n:] = m
+    pa[n:, :n] = m.T
+    pa[n:, n:] = r
+    ha = np.hstack([h, np.eye(nz)])
+    xa, pa = kf_update(np.concatenate([x, np.zeros(nz)]), pa, z, np.zeros((nz, nz)), ha)
+    return xa[:n], pa[:n, :n]
+
+
+def quadratic_form(y: np.ndarray, s: np.ndarray) -> float:
+    """``y^T S^-1 y`` for a symmetric positive definite S (closed form for 3 x 3)."""
+    if y.shape[0] != 3:
+        return float(y @ np.linalg.solve(s, y))
+    (a, b, c), (_, d, e), (_, _, f) = s.tolist()
+    # adjugate of the symmetric 3 x 3 matrix
+    ia, ib, ic = d * f - e * e, c * e - b * f, b * e - c * d
+    id_, ie, if_ = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * ia + b * ib + c * ic
+    x, yy, z = y.tolist()
+    num = ia * x * x + id_ * yy * yy + if_ * z * z + 2.0 * (ib * x * yy + ic * x * z + ie * yy * z)
+    return num / det if det > 0.0 else float("inf")
