@@ -496,6 +496,7 @@ def consistency(
     NIS inside on >= 90 % of epochs. ``blocks`` and the rest then cover all the runs.
     How often a filter meets the target on a fresh draw of runs is what this
     measures; one set's share is a single draw of it.
+    ``target`` is the target's verdict on ``blocks`` (:func:`target_verdict`).
     """
     import dask
     from tqdm import tqdm
@@ -558,8 +559,22 @@ def consistency(
             "share_inside" in row and all(v >= TARGET_SHARE for v in row["share_inside"].values())
             for row in out["sets"]
         )
+    out["target"] = target_verdict(out["blocks"])
     out["att_rms_deg_median"] = float(np.median([r["att_rms_deg"] for r in results]))
     return out
+
+
+def target_verdict(blocks: dict[str, dict]) -> dict:
+    """Issue 3's consistency target on one set of blocks: every NEES block and NIS inside
+    its bounds on >= :data:`TARGET_SHARE` of epochs.
+
+    Returns ``{"share": TARGET_SHARE, "met": bool, "misses": {name: share_inside}}``,
+    ``misses`` holding the blocks below the share (empty when met).
+    """
+    misses = {
+        name: b["share_inside"] for name, b in blocks.items() if b["share_inside"] < TARGET_SHARE
+    }
+    return {"share": TARGET_SHARE, "met": not misses, "misses": misses}
 
 
 def set_shares(

@@ -457,6 +457,13 @@ def cmd_consistency(args: argparse.Namespace) -> int:
         "  control pos/vel: NEES of a perfect-array filter on the same fixes (filters.control), "
         "consistent by construction"
     )
+    verdict = out["target"]
+    misses = ", ".join(f"{k} {100 * v:.1f} %" for k, v in verdict["misses"].items())
+    print(
+        f"  target (every NEES block and NIS inside on >= {100 * verdict['share']:.0f} % of "
+        f"epochs, whole run, {out['runs']} runs): "
+        + ("met" if verdict["met"] else f"not met: {misses}")
+    )
     if "sets" in out:
         _print_sets(out["sets"], out["sets_meeting_target"])
     print(f"  median attitude RMS over runs: {out['att_rms_deg_median']:.3f} deg")

@@ -71,6 +71,9 @@ def test_cli_sets_repeat_a_single_set_exactly():
     assert s1["share_inside"] != s0["share_inside"]
     meeting = sum(all(v >= 0.9 for v in s["share_inside"].values()) for s in two["sets"])
     assert two["sets_meeting_target"] == meeting
+    for out in (one, two):  # the verdict names exactly the blocks under 90 %
+        under = {k: v["share_inside"] for k, v in out["blocks"].items() if v["share_inside"] < 0.9}
+        assert out["target"] == {"share": 0.9, "met": not under, "misses": under}
     assert two["blocks"]["NEES all"]["lower"] == pytest.approx(chi2_bounds(12, 2)[0])
 
 
@@ -108,6 +111,10 @@ def test_cli_cycle_profile():
     assert all(0.0 <= r["all_below"] <= 1.0 and 0.0 <= r["all_above"] <= 1.0 for r in rows)
     text = run_cli(*base, "--cycle", "0.2").stdout
     assert "by phase in the cycle" in text
+    verdict = next(line for line in text.splitlines() if line.startswith("  target ("))
+    missed = [k for k, v in out["blocks"].items() if v["share_inside"] < 0.9]
+    assert verdict.endswith("met") == (not missed)
+    assert all(f"{k} {100 * out['blocks'][k]['share_inside']:.1f} %" in verdict for k in missed)
     assert sum(line.startswith("      0.") for line in text.splitlines()) >= 20
     bad = run_cli(*base, "--cycle", "0.215", check=False)
     assert bad.returncode != 0 and "whole number" in bad.stderr
