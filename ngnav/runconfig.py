@@ -32,7 +32,11 @@ truth to separate files.
                    liftoff_speed_mps,
                    gps_gap_reset_s, fusion_lag_s,
                    hold_wdot_sigma_rps2, hold_force_sigma_mps2, position_states,
-                   forecast_error_persistence
+                   remainder_updates, attitude_remainder_updates,
+                   coast_remainder_updates, coast_after_s,
+                   forecast_error_persistence, forecast_correction,
+                   remainder_off_constraint, vehicle_model_rate_hz
+                   (each explained in FilterSettings' docstring)
 """
 
 from __future__ import annotations

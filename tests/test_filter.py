@@ -57,6 +57,24 @@ def test_config_round_trip(tmp_path, tactical):
         read_run_config(tmp_path / "bad.toml")
 
 
+def test_config_format_documents_every_setting():
+    """The ``config.toml`` format in ``ngnav.runconfig``'s docstring (which the README
+    points to for the full list) names every ``[initial]`` and ``[filter]`` key."""
+    import dataclasses
+    import re
+
+    import ngnav.runconfig as rc
+
+    doc = rc.__doc__
+    for section, cls in (("initial", rc.InitialSettings), ("filter", rc.FilterSettings)):
+        block = doc[doc.index(f"[{section}]") :]
+        block = block[: re.search(r"\n    \[(?!" + section + r"\])", block + "\n    [").start()]
+        missing = [
+            f.name for f in dataclasses.fields(cls) if not re.search(rf"\b{f.name}\b", block)
+        ]
+        assert not missing, (section, missing)
+
+
 def test_csv_round_trip_and_bad_files(tmp_path, tactical):
     write_array_csv(tmp_path / "array.csv", tactical.samples)
     s, rep = read_array_csv(tmp_path / "array.csv", 9)
