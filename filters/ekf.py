@@ -1322,8 +1322,13 @@ class NavFilter:
         with ``A = (a v^T + v a^T) / 2 - (a . v) I``. With the ``AOA`` state the
         vertical axis also turns, ``n_b(alpha + da) = n_b - da t_b - da^2 n_b / 2``
         (``b = C t_b``), which adds ``-da b^T ([v]x dtheta + dv) - da^2 (a . v) / 2``.
-        Written ``q = x^T M x / 2`` over ``x = (dtheta, dv[, da])``, a Gaussian error
-        gives ``E q = tr(M P) / 2`` and ``Var q = tr(M P M P) / 2``, the second-order
+        The angle itself, ``w(V) (alpha_b + K n_w / V^2)`` with a lift law, is bilinear in
+        the speed's error ``dV = v^T dv / V`` and the law's states beyond its Jacobian:
+        ``da`` holds ``dV (w' d alpha_b + (w' u - 2 w u / V) dK)`` too, which moves the
+        model by ``-b . v`` per radian. In the lift-off blend (``w'`` up to 0.5 per m/s,
+        the law 1 deg uncertain) this term is far above the model's sigma.
+        Written ``q = x^T M x / 2`` over ``x = (dtheta, dv[, da, AOA states])``, a
+        Gaussian error gives ``E q = tr(M P) / 2`` and ``Var q = tr(M P M P) / 2``, the second-order
         filter's terms (as for the rate products). They are negligible while GPS
         holds velocity and attitude; at the end of a long coast (metres per second
         of velocity error, tenths of a degree of tilt) they exceed a tight sideslip
@@ -1349,14 +1354,47 @@ class NavFilter:
             m[6, 3:6] = m[3:6, 6] = -b
             m[6, 6] = -float(a @ v)
         px = self.P[_DTHETA_DV_IX]
-        if with_aoa:  # the angle of attack's error: w (d alpha_b + u dK)
-            ia = self.layout.aoa
-            j = self._aoa_gradient()
-            cross = self.P[idx, ia] @ j
-            px = np.block(
-                [[px, cross[:, None]], [cross[None, :], np.array([[j @ self.P[ia, ia] @ j]])]]
-            )
-        return remainder_moments(m, px)
+        if not with_aoa:
+            return remainder_moments(m, px)
+        # x = (dtheta, dv, da, AOA states): the angle's linear error da (through the
+        # law's states and, with a law, the speed) beside the states it is made of, for
+        # the angle's own second-order terms
+        ia = self.layout.aoa
+        na = self.layout.n_aoa
+        t = np.zeros((7 + na, 6 + na))
+        t[:6, :6] = np.eye(6)
+        j = self.aoa_jacobian(v)
+        t[6, 3:6] = j[VEL]
+        t[6, 6:] = j[ia]
+        t[7:, 6:] = np.eye(na)
+        mx = np.zeros((7 + na, 7 + na))
+        mx[:7, :7] = m
+        speed = self._speed()
+        if speed > 1.0:
+            # alpha = w(V) (alpha_b + K n_w / V^2) mixes the speed with the law's states:
+            # d2 alpha / dV d alpha_b = w', d2 alpha / dV dK = w' u - 2 w u / V, with
+            # dV = v^T dv / V. In the lift-off blend the first dwarfs the model's sigma
+            # (w' up to 0.5 per m/s against a law 1 deg uncertain); without it the
+            # blend's slope made the speed look measured.
+            u = self._lift_u_jac
+            w, dw = self._lift_w, self._lift_dw
+            mix = np.array([dw, dw * u - 2.0 * w * u / speed])
+            dv_da = -float(b @ v)
+            v_hat = v / speed
+            cross = dv_da * np.outer(v_hat, mix[:na])  # (3, na): m/s per unit^2
+            mx[3:6, 7:] = cross
+            mx[7:, 3:6] = cross.T
+            # and the speed's own curvature: V(v + dv) bends across the velocity, and the
+            # law's 1 / V^2 (with w' times it) along it; the blend's w'' is
+            # blend_remainder_var's
+            k_u = self.aoa_k * u
+            lift = self._unblended_aoa()
+            slope = dw * lift - 2.0 * w * k_u / speed  # d alpha / dV, rad s/m
+            along = -4.0 * dw * k_u / speed + 6.0 * w * k_u / speed**2
+            vv = np.outer(v_hat, v_hat)
+            mx[3:6, 3:6] += dv_da * (slope * (np.eye(3) - vv) / speed + along * vv)
+        sel = np.r_[idx, np.arange(ia.start, ia.stop)]
+        return remainder_moments(mx, t @ self.P[np.ix_(sel, sel)] @ t.T)
 
     def _gated_update(
         self, y: np.ndarray, r: np.ndarray, h: np.ndarray, gate: float | None = None

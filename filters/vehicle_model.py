@@ -196,9 +196,10 @@ def remainder_moments(m: np.ndarray, px: np.ndarray) -> Remainder:
     Parameters
     ----------
     m : array (d, d)
-        The remainder's symmetric matrix over ``x = (dtheta, dv[, dalpha])``: NED
-        attitude error (rad), NED velocity error (m/s) and, for the angle-of-attack
-        model with its state, the angle's error (rad); m/s per unit of each pair.
+        The remainder's symmetric matrix over ``x = (dtheta, dv[, dalpha, AOA states])``:
+        NED attitude error (rad), NED velocity error (m/s) and, for the angle-of-attack
+        model with its state, the angle's linear error (rad) and the lift law's states
+        (offset, rad; ``K``, m); m/s per unit of each pair.
     px : array (d, d)
         The covariance of ``x``, in the same order.
 
