@@ -53,6 +53,7 @@ from filters.vehicle_model import (
     attitude_product_matrix,
     blend_spread_var,
     constraint_axes,
+    prior_weighted_count,
     remainder_moments,
     remainder_variance,
 )
@@ -265,6 +266,14 @@ class NavFilter:
         variance stays on the constraint, which leaves the constraint's direction
         several times too uncertain for the 10-50 ms until the next blocks' noise
         covers it (docs/filter-notes.md, "the count off the constraint").
+    count_by_prior_weight : bool
+        Outside the hand-over and coasts, scale both counts by the weight the update
+        keeps on the prior along the constraint
+        (:func:`filters.vehicle_model.prior_weighted_count`): in GPS-held flight, where
+        the prior along the constraint is thousands of times R, the count falls to about
+        1 and the constraint's direction keeps the remainder's own variance after the
+        update (docs/filter-notes.md, "the count by the prior's weight"). False (the
+        default): the configured counts everywhere.
 
     Attributes
     ----------
@@ -293,6 +302,7 @@ class NavFilter:
     coast_hold_s: float = 0.0
     handover_hold_s: float = 0.0
     remainder_off_constraint: bool = False
+    count_by_prior_weight: bool = False
     counters: Counters = field(default_factory=Counters)
 
     def __post_init__(self) -> None:
@@ -1204,21 +1214,34 @@ class NavFilter:
     def _body_velocity_update(self, axis: int, sigma_v_mps: float) -> tuple[float, bool]:
         v_axis, h = self.body_velocity_model(self.q, self.vel, axis, self.aoa)
         rem = self.body_velocity_second_order(axis)
-        counted = remainder_variance(
-            rem, self.current_remainder_updates(), self.attitude_remainder_updates
-        )
-        var = sigma_v_mps**2 + counted
+        load_var = blend_var = 0.0  # R's angle-of-attack terms, m^2/s^2
         dv_da = 0.0  # the model's change per radian of angle of attack: -(C t_b . v)
         if axis == VERTICAL:
             _, t_b = constraint_axes(VERTICAL, self.aoa)
             dv_da = -float((dcm_from_quat(self.q) @ t_b) @ self.vel)
             # the predicted angle carries the load's noise: w K du
-            var += dv_da * dv_da * self._load_angle_var()
-            blend_var = self.blend_remainder_var()
+            load_var = dv_da * dv_da * self._load_angle_var()
+            # the blend beyond its linear term moves the angle, and the velocity with it
+            lift = self._unblended_aoa()
+            blend_var = dv_da * dv_da * lift * lift * self.blend_remainder_var()
+        n_upd = self.current_remainder_updates()
+        n_att = self.attitude_remainder_updates
+        counted = remainder_variance(rem, n_upd, n_att)
+        if self.count_by_prior_weight and n_upd == self.remainder_updates:
+            # outside the hand-over and coasts (whose count stands for more than the
+            # remainder's persistence): the count as far as the update keeps the prior
+            r_c = sigma_v_mps**2 + counted + load_var + blend_var
+            s_prior = float(h[0] @ self.P @ h[0])
+            counted = remainder_variance(
+                rem,
+                prior_weighted_count(n_upd, r_c, s_prior),
+                prior_weighted_count(n_att, r_c, s_prior),
+            )
+        var = sigma_v_mps**2 + counted
+        if axis == VERTICAL:
+            var += load_var
             if blend_var > 0.0:
-                # the blend beyond its linear term moves the angle, and the velocity with it
-                lift = self._unblended_aoa()
-                var += dv_da * dv_da * lift * lift * blend_var
+                var += blend_var
         r = np.array([[var]])
         log = self.body_velocity_log
         if log is not None:

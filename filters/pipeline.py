@@ -580,6 +580,7 @@ class Pipeline:
             # a hand-over's attitude errors are a coast's: counted so for as long
             handover_hold_s=hold_s if cfg.initial.alignment == "config" else 0.0,
             remainder_off_constraint=cfg.filter.remainder_off_constraint,
+            count_by_prior_weight=cfg.filter.count_by_prior_weight,
         )
         nf.body_velocity_log = self.body_velocity_log
         self.nf = nf

@@ -190,6 +190,36 @@ def remainder_variance(
     return updates * rem.var + max(attitude_updates - updates, 0.0) * rem.var_att
 
 
+def prior_weighted_count(count: float, r_counted: float, s_prior: float) -> float:
+    """The remainder's count scaled by the weight its update keeps on the prior.
+
+    Parameters
+    ----------
+    count : float
+        The configured count (>= 1): consecutive updates that share one value of the
+        remainder (:func:`remainder_variance`).
+    r_counted : float
+        The update's R with the configured count, m^2/s^2.
+    s_prior : float
+        The prior's variance along the constraint, ``h P h^T``, m^2/s^2.
+
+    Returns
+    -------
+    float
+        ``1 + (count - 1) w`` with ``w = R / (s + R) = 1 - h K``, the weight the
+        posterior keeps on the prior along the constraint. A persistent remainder
+        adds information it does not have only through what an update keeps of the
+        earlier ones, which is that weight: where the prior along the constraint is
+        fresh process noise (``s`` thousands of times R, GPS-held flight), the update
+        replaces the constraint's combination by the measurement, the error left along
+        it is the current remainder (counted once) and the gain is the same to
+        ``(count - 1) R / s`` either way; where the prior is R's size or smaller
+        (the update adds to what earlier ones left) the whole count applies.
+    """
+    w = r_counted / (s_prior + r_counted) if s_prior + r_counted > 0.0 else 1.0
+    return 1.0 + (count - 1.0) * w
+
+
 def remainder_moments(m: np.ndarray, px: np.ndarray) -> Remainder:
     """Moments of the remainder ``q = x^T M x / 2`` for a Gaussian error ``x ~ N(0, px)``.
 

@@ -35,7 +35,8 @@ truth to separate files.
                    remainder_updates, attitude_remainder_updates,
                    coast_remainder_updates, coast_after_s,
                    forecast_error_persistence, forecast_correction,
-                   remainder_off_constraint, vehicle_model_rate_hz
+                   remainder_off_constraint, vehicle_model_rate_hz,
+                   count_by_prior_weight
                    (each explained in FilterSettings' docstring)
 """
 
@@ -220,6 +221,18 @@ class FilterSettings:
     (docs/filter-notes.md, "the vehicle model at the remainder's own interval"). Both scenarios
     keep 5 Hz: at 1 Hz ``tactical``'s rate read optimistic over ten draws (3.06) and
     ``uav-survey``'s dip stayed (its attitude part still counted 8 times).
+
+    ``count_by_prior_weight`` (default false): outside the hand-over and coasts, the
+    sideslip and angle-of-attack updates count the remainder ``1 + (n - 1) w`` times in
+    place of ``n`` (each of the two counts), ``w = R / (h P h^T + R)`` the weight the update
+    keeps on the prior along the constraint (``filters.vehicle_model.prior_weighted_count``).
+    A remainder shared by consecutive updates adds information it does not have only
+    through what an update keeps of the earlier ones. In GPS-held flight the prior along
+    the constraint is thousands of times R (fresh process noise), the update replaces the
+    constraint's combination by the measurement, and the gain is the same to
+    ``(n - 1) R / (h P h^T)`` either way, so the count only left the constraint's direction
+    several times too uncertain after each update: the joint NEES's dip
+    (docs/filter-notes.md, "the count by the prior's weight").
     """
 
     rate_hz: float = 100.0
@@ -248,6 +261,7 @@ class FilterSettings:
     forecast_correction: bool = False
     remainder_off_constraint: bool = False
     vehicle_model_rate_hz: float = 5.0
+    count_by_prior_weight: bool = False
 
     def __post_init__(self) -> None:
         if self.compensation not in COMPENSATIONS:

@@ -15,6 +15,7 @@ from filters.vehicle_model import (
     SIDESLIP_REMAINDER_UPDATES,
     VERTICAL,
     constraint_axes,
+    prior_weighted_count,
     remainder_moments,
     remainder_variance,
 )
@@ -874,16 +875,99 @@ def test_count_moved_off_the_constraint(axis):
     np.linalg.cholesky(moved.P)  # still positive definite
 
 
-def test_remainder_off_constraint_is_a_setting_that_reaches_the_filter():
-    """``filter.remainder_off_constraint`` (off by default) reaches the filter a run
-    builds, from a scenario override as ``--set`` gives it: on a 3 s turn the
-    covariance differs, and the nominal state the first update meets is the same."""
+def test_prior_weighted_count_limits():
+    """``1 + (c - 1) R / (s + R)``: the whole count where the prior along the constraint
+    is nothing (the update keeps all of it: w = 1), half-way where the prior equals R,
+    and 1 plus ``(c - 1) R / s`` to first order where the prior is far larger; never
+    below 1 nor above the count, falling as the prior grows; a count of 1 stays 1."""
+    c, r = 7.0, 2.5e-9
+    assert prior_weighted_count(c, r, 0.0) == c
+    assert prior_weighted_count(c, r, r) == pytest.approx(1.0 + (c - 1.0) / 2.0, rel=1e-15)
+    assert prior_weighted_count(c, r, 2500.0 * r) == pytest.approx(1.0 + 6.0 / 2501.0, rel=1e-12)
+    s = np.logspace(-3, 6, 50) * r
+    got = np.array([prior_weighted_count(c, r, x) for x in s])
+    assert np.all(np.diff(got) < 0.0) and np.all((got > 1.0) & (got < c))
+    assert prior_weighted_count(1.0, r, 3.0 * r) == 1.0
+    assert prior_weighted_count(c, 0.0, 0.0) == c  # no information either way: the count
+
+
+@pytest.mark.parametrize("axis", [LATERAL, VERTICAL])
+@pytest.mark.parametrize("prior_scale", [1.0, 1e-7])
+def test_count_by_prior_weight_update(axis, prior_scale):
+    """``count_by_prior_weight``: outside the hand-over and coasts the update's R counts
+    the remainder ``prior_weighted_count`` times, with the configured counts' R and the
+    prior ``h P h^T`` along the constraint.
+
+    With a GPS-held prior along the constraint (thousands of times R) the posterior
+    variance along it is the remainder counted once plus the sigma's (the count's R
+    less the count), where the configured count leaves it several times that; with a
+    prior far below R (``prior_scale`` 1e-7 along the constraint, the rest kept)
+    the update is the configured one within 1 %. Either way the update is filterpy's
+    with that R (Joseph form)."""
+    sigma = np.deg2rad(3e-5)
+    out = {}
+    for on in (False, True):
+        nf, _, _ = _filter()
+        nf.count_by_prior_weight = on
+        nf.attitude_remainder_updates = 7.0
+        nf.body_velocity_log = []
+        rng = np.random.default_rng(5)
+        nf.q = quat_from_rotvec(np.array([0.2, 0.05, 1.0]))
+        c = dcm_from_quat(nf.q)
+        idx = np.r_[6:9, 3:6]
+        a = rng.normal(size=(6, 6))
+        scale = np.r_[[0.005] * 3, [0.05] * 3]
+        p = np.eye(nf.layout.n) * 1e-12
+        p[np.ix_(idx, idx)] = (a @ a.T) * np.outer(scale, scale) / 6.0
+        nf.vel = 60.0 * c[:, 0]
+        nf.t_last_position_fix = nf.t_s  # GPS-held: not a coast
+        _, h = nf.body_velocity_model(nf.q, nf.vel, axis)
+        # the prior along the constraint scaled, the rest (and so the remainder) about kept
+        ph = p @ h[0]
+        p = p - (1.0 - prior_scale) * np.outer(ph, ph) / float(h[0] @ ph)
+        nf.P = p.copy()
+        rem = nf.body_velocity_second_order(axis)
+        if axis == LATERAL:
+            nf.update_sideslip(sigma, 5.0)
+        else:
+            nf.update_angle_of_attack(sigma, 5.0)
+        r_used = nf.body_velocity_log[0].r_m2ps2
+        _, p_ref = kf_update(np.zeros(nf.layout.n), p.copy(), np.zeros(1), np.array([[r_used]]), h)
+        # the nominal moved (a nonzero innovation), so compare where the reset leaves P
+        # as it was: the velocity block and the constraint's direction through it
+        out[on] = (float(h[0] @ p @ h[0]), r_used, rem, nf, p_ref, h[0])
+    s_prior, r_off, rem, _, _, h = out[False]
+    _, r_on, _, nf_on, p_ref_on, _ = out[True]
+    r_sigma = r_off - remainder_variance(rem, SIDESLIP_REMAINDER_UPDATES, 7.0)
+    counted_once = r_sigma + rem.var
+    assert r_off > 3.0 * counted_once  # the count dominates R
+    np.testing.assert_allclose(nf_on.P[VEL, VEL], p_ref_on[VEL, VEL], rtol=1e-9, atol=0.0)
+    want = remainder_variance(
+        rem,
+        prior_weighted_count(SIDESLIP_REMAINDER_UPDATES, r_off, s_prior),
+        prior_weighted_count(7.0, r_off, s_prior),
+    )
+    assert r_on == pytest.approx(r_sigma + want, rel=1e-12)
+    if prior_scale == 1.0:
+        assert s_prior > 1000.0 * r_off
+        assert r_on == pytest.approx(counted_once, rel=1e-2)
+    else:
+        assert s_prior < 0.01 * r_off
+        assert r_on == pytest.approx(r_off, rel=1e-2)
+
+
+@pytest.mark.parametrize("setting", ["remainder_off_constraint", "count_by_prior_weight"])
+def test_vehicle_model_switch_is_a_setting_that_reaches_the_filter(setting):
+    """``filter.remainder_off_constraint`` and ``filter.count_by_prior_weight`` (each off
+    by default) reach the filter a run builds, from a scenario override as ``--set``
+    gives it: on a 3 s turn the covariance differs, and the nominal state the first
+    update meets is the same."""
     from filters.pipeline import run_filter
     from ngnav.flight_scenario import load_flight
     from ngnav.runconfig import FilterSettings
     from ngnav.simulate import simulate_flight
 
-    assert FilterSettings().remainder_off_constraint is False
+    assert getattr(FilterSettings(), setting) is False
     ends = {}
     for value in ("false", "true"):
         scn = load_flight(
@@ -891,10 +975,13 @@ def test_remainder_off_constraint_is_a_setting_that_reaches_the_filter():
             [
                 "run.rate_hz=200",
                 "flight.legs=[{ duration_s = 3.0, ramp_s = 1.0, bank_deg = 30.0 }]",
-                f"filter.remainder_off_constraint={value}",
+                # the hand-over's count equal to the flight's: no hold, so the whole
+                # 3 s counts as GPS-held flight
+                "filter.coast_remainder_updates=4",
+                f"filter.{setting}={value}",
             ],
         )
-        assert scn.filter.remainder_off_constraint is (value == "true")
+        assert getattr(scn.filter, setting) is (value == "true")
         sim = simulate_flight(scn, 0)
         ends[value] = run_filter(sim.samples, sim.fixes, sim.config).estimates
     off, on = ends["false"], ends["true"]

@@ -250,7 +250,8 @@ def test_remainder_counts_are_settings_that_reach_the_update():
     """``filter.remainder_updates`` and ``filter.attitude_remainder_updates`` set the
     R of every sideslip update (``sigma^2 + remainder_variance``), checked on the
     first update after the hand-over's hold (8 s, during which both count the
-    coast's 40), where both runs are still in the same state."""
+    coast's 40), where both runs are still in the same state; with
+    ``filter.count_by_prior_weight`` off, as configured."""
     with pytest.raises(ValueError, match=r"filter\.remainder_updates must be a number in"):
         FilterSettings(remainder_updates=0.5)
     with pytest.raises(ValueError, match=r"filter\.attitude_remainder_updates must be"):
@@ -258,7 +259,14 @@ def test_remainder_counts_are_settings_that_reach_the_update():
     firsts = {}
     for n_att in (40.0, 7.0):
         scn = load_flight(
-            "tactical", ["run.rate_hz=200", f"filter.attitude_remainder_updates={n_att}"]
+            "tactical",
+            [
+                "run.rate_hz=200",
+                f"filter.attitude_remainder_updates={n_att}",
+                # the counts as configured (tactical.toml scales them by the prior's
+                # weight; tests/test_ekf_models.py checks that path)
+                "filter.count_by_prior_weight=false",
+            ],
         )
         sim = simulate_flight(scn, 0)
         log = []
