@@ -319,12 +319,10 @@ def test_consistency_small_monte_carlo(monte_carlo):
 @pytest.mark.xfail(
     strict=True,
     reason="known miss (README, 'Targets (issue 3)'): tactical, 50 runs, whole run pos / vel / "
-    "att / rate / all / aoa 91.0 / 92.9 / 97.5 / 93.9 / 80.1 / 90.6 % inside (the joint "
-    "pessimistic: 19.2 % of epochs below; the exact control on the same fixes 85.9 % in "
-    "position); uav-survey 97.6 / 91.6 / 92.3 / 92.4 / 88.5 / 96.1 %. Over ten draws of 50 "
-    "tactical runs "
-    "(--sets 10) two draws meet every block and the control misses position or velocity in "
-    "four; uav-survey meets it on one draw of five",
+    "att / rate / all / aoa 91.0 / 92.8 / 97.5 / 93.8 / 83.1 / 90.5 % inside (the joint "
+    "pessimistic; the exact control on the same fixes 85.9 % in position); uav-survey 97.6 / "
+    "92.4 / 92.7 / 92.4 / 88.3 / 96.4 %. Of three draws of 50 tactical runs (--sets 3) one "
+    "meets every block; uav-survey met it on one draw of five",
 )
 def test_target_is_met(monte_carlo):
     """The issue's target at CI size: every NEES block and NIS inside the bounds on
