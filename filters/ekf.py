@@ -1227,7 +1227,7 @@ class NavFilter:
         n_upd = self.current_remainder_updates()
         n_att = self.attitude_remainder_updates
         counted = remainder_variance(rem, n_upd, n_att)
-        if self.count_by_prior_weight and n_upd == self.remainder_updates:
+        if self.count_by_prior_weight and not self.counts_as_coast():
             # outside the hand-over and coasts (whose count stands for more than the
             # remainder's persistence): the count as far as the update keeps the prior
             r_c = sigma_v_mps**2 + counted + load_var + blend_var
