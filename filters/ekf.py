@@ -267,13 +267,15 @@ class NavFilter:
         several times too uncertain for the 10-50 ms until the next blocks' noise
         covers it (docs/filter-notes.md, "the count off the constraint").
     count_by_prior_weight : bool
-        Outside the hand-over and coasts, scale both counts by the weight the update
-        keeps on the prior along the constraint
+        Outside the hand-over and coasts, scale the sideslip update's two counts by the
+        weight the update keeps on the prior along the constraint
         (:func:`filters.vehicle_model.prior_weighted_count`): in GPS-held flight, where
         the prior along the constraint is thousands of times R, the count falls to about
         1 and the constraint's direction keeps the remainder's own variance after the
-        update (docs/filter-notes.md, "the count by the prior's weight"). False (the
-        default): the configured counts everywhere.
+        update (docs/filter-notes.md, "the count by the prior's weight"). The
+        angle-of-attack update keeps its counts: its prior along the constraint holds
+        the lift law's states, which persist from one update to the next rather than
+        being fresh process noise. False (the default): the configured counts everywhere.
 
     Attributes
     ----------
@@ -1227,9 +1229,10 @@ class NavFilter:
         n_upd = self.current_remainder_updates()
         n_att = self.attitude_remainder_updates
         counted = remainder_variance(rem, n_upd, n_att)
-        if self.count_by_prior_weight and not self.counts_as_coast():
+        if self.count_by_prior_weight and axis == LATERAL and not self.counts_as_coast():
             # outside the hand-over and coasts (whose count stands for more than the
-            # remainder's persistence): the count as far as the update keeps the prior
+            # remainder's persistence): the count as far as the update keeps the prior;
+            # the sideslip model only, whose prior along the constraint is fresh noise
             r_c = sigma_v_mps**2 + counted + load_var + blend_var
             s_prior = float(h[0] @ self.P @ h[0])
             counted = remainder_variance(

@@ -215,6 +215,9 @@ def prior_weighted_count(count: float, r_counted: float, s_prior: float) -> floa
         it is the current remainder (counted once) and the gain is the same to
         ``(count - 1) R / s`` either way; where the prior is R's size or smaller
         (the update adds to what earlier ones left) the whole count applies.
+        :class:`filters.ekf.NavFilter` applies it to the sideslip model only
+        (``count_by_prior_weight``): the angle-of-attack model's prior along its
+        constraint holds the lift law's states, which are not fresh noise.
     """
     w = r_counted / (s_prior + r_counted) if s_prior + r_counted > 0.0 else 1.0
     return 1.0 + (count - 1.0) * w

@@ -223,19 +223,19 @@ class FilterSettings:
     ``uav-survey``'s dip stayed (its attitude part still counted 8 times).
 
     ``count_by_prior_weight`` (default false): outside the hand-over and coasts, the
-    sideslip and angle-of-attack updates count the remainder ``1 + (n - 1) w`` times in
-    place of ``n`` (each of the two counts), ``w = R / (h P h^T + R)`` the weight the update
-    keeps on the prior along the constraint (``filters.vehicle_model.prior_weighted_count``).
-    A remainder shared by consecutive updates adds information it does not have only
-    through what an update keeps of the earlier ones. In GPS-held flight the prior along
-    the constraint is thousands of times R (fresh process noise), the update replaces the
-    constraint's combination by the measurement, and the gain is the same to
-    ``(n - 1) R / (h P h^T)`` either way, so the count only left the constraint's direction
-    several times too uncertain after each update: the joint NEES's dip
-    (docs/filter-notes.md, "the count by the prior's weight"). ``tactical.toml`` turns it
-    on (the joint 83.1 / 94.1 / 89.8 % inside on runs 0-149 in three draws, every other
-    block within 0.2 point); ``uav-survey`` keeps it off, where it took the dip away but
-    turned the attitude and rate optimistic (the joint's mean 12.45).
+    sideslip update counts the remainder ``1 + (n - 1) w`` times in place of ``n`` (each
+    of its two counts), ``w = R / (h P h^T + R)`` the weight the update keeps on the prior
+    along the constraint (``filters.vehicle_model.prior_weighted_count``). A remainder
+    shared by consecutive updates adds information it does not have only through what an
+    update keeps of the earlier ones. In GPS-held flight the prior along the constraint
+    is thousands of times R (fresh process noise), the update replaces the constraint's
+    combination by the measurement, and the gain is the same to ``(n - 1) R / (h P h^T)``
+    either way, so the count only left the constraint's direction several times too
+    uncertain after each update: the joint NEES's dip (docs/filter-notes.md, "the count by
+    the prior's weight"). The angle-of-attack update keeps its counts: its prior along
+    the constraint holds the lift law's states, which persist from update to update, and
+    weighted like the sideslip's it turned ``uav-survey``'s attitude and rate optimistic.
+    Both scenarios turn it on.
     """
 
     rate_hz: float = 100.0

@@ -894,9 +894,10 @@ def test_prior_weighted_count_limits():
 @pytest.mark.parametrize("axis", [LATERAL, VERTICAL])
 @pytest.mark.parametrize("prior_scale", [1.0, 1e-7])
 def test_count_by_prior_weight_update(axis, prior_scale):
-    """``count_by_prior_weight``: outside the hand-over and coasts the update's R counts
-    the remainder ``prior_weighted_count`` times, with the configured counts' R and the
-    prior ``h P h^T`` along the constraint.
+    """``count_by_prior_weight``: outside the hand-over and coasts the sideslip update's R
+    counts the remainder ``prior_weighted_count`` times, with the configured counts' R and
+    the prior ``h P h^T`` along the constraint; the angle-of-attack update keeps the
+    configured counts (the same R and posterior, to the bit).
 
     With a GPS-held prior along the constraint (thousands of times R) the posterior
     variance along it is the remainder counted once plus the sigma's (the count's R
@@ -936,12 +937,16 @@ def test_count_by_prior_weight_update(axis, prior_scale):
         # the nominal moved (a nonzero innovation), so compare where the reset leaves P
         # as it was: the velocity block and the constraint's direction through it
         out[on] = (float(h[0] @ p @ h[0]), r_used, rem, nf, p_ref, h[0])
-    s_prior, r_off, rem, _, _, h = out[False]
+    s_prior, r_off, rem, nf_off, _, h = out[False]
     _, r_on, _, nf_on, p_ref_on, _ = out[True]
     r_sigma = r_off - remainder_variance(rem, SIDESLIP_REMAINDER_UPDATES, 7.0)
     counted_once = r_sigma + rem.var
     assert r_off > 3.0 * counted_once  # the count dominates R
     np.testing.assert_allclose(nf_on.P[VEL, VEL], p_ref_on[VEL, VEL], rtol=1e-9, atol=0.0)
+    if axis == VERTICAL:
+        assert r_on == r_off
+        np.testing.assert_array_equal(nf_on.P, nf_off.P)
+        return
     want = remainder_variance(
         rem,
         prior_weighted_count(SIDESLIP_REMAINDER_UPDATES, r_off, s_prior),
