@@ -270,7 +270,7 @@ class NavFilter:
         Outside the hand-over and coasts, scale the sideslip update's two counts by the
         weight the update keeps on the prior along the constraint
         (:func:`filters.vehicle_model.prior_weighted_count`): in GPS-held flight, where
-        the prior along the constraint is thousands of times R, the count falls to about
+        the prior along the constraint is hundreds to thousands of times R, the count falls to about
         1 and the constraint's direction keeps the remainder's own variance after the
         update (docs/filter-notes.md, "the count by the prior's weight"). The
         angle-of-attack update keeps its counts: its prior along the constraint holds

@@ -228,7 +228,7 @@ class FilterSettings:
     along the constraint (``filters.vehicle_model.prior_weighted_count``). A remainder
     shared by consecutive updates adds information it does not have only through what an
     update keeps of the earlier ones. In GPS-held flight the prior along the constraint
-    is thousands of times R (fresh process noise), the update replaces the constraint's
+    is hundreds to thousands of times R (fresh process noise), the update replaces the constraint's
     combination by the measurement, and the gain is the same to ``(n - 1) R / (h P h^T)``
     either way, so the count only left the constraint's direction several times too
     uncertain after each update: the joint NEES's dip (docs/filter-notes.md, "the count by
