@@ -270,9 +270,9 @@ class NavFilter:
         Outside the hand-over and coasts, scale the sideslip update's two counts by the
         weight the update keeps on the prior along the constraint
         (:func:`filters.vehicle_model.prior_weighted_count`): in GPS-held flight, where
-        the prior along the constraint is hundreds to thousands of times R, the count falls to about
-        1 and the constraint's direction keeps the remainder's own variance after the
-        update (docs/filter-notes.md, "the count by the prior's weight"). The
+        the prior along the constraint is hundreds to thousands of times R, the count
+        falls to about 1 and the constraint's direction keeps the remainder's own
+        variance after the update (docs/filter-notes.md, "the count by the prior's weight"). The
         angle-of-attack update keeps its counts: its prior along the constraint holds
         the lift law's states, which persist from one update to the next rather than
         being fresh process noise. False (the default): the configured counts everywhere.
@@ -1233,7 +1233,7 @@ class NavFilter:
             # outside the hand-over and coasts (whose count stands for more than the
             # remainder's persistence): the count as far as the update keeps the prior;
             # the sideslip model only, whose prior along the constraint is fresh noise
-            r_c = sigma_v_mps**2 + counted + load_var + blend_var
+            r_c = sigma_v_mps**2 + counted  # the sideslip's R: no load or blend terms
             s_prior = float(h[0] @ self.P @ h[0])
             counted = remainder_variance(
                 rem,
