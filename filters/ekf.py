@@ -41,6 +41,8 @@ from filters.state import ATT, B_F, B_WDOT, N_NAV, POS, RATE, VEL, StateLayout, 
 from filters.updates import quadratic_form, update_correlated
 from filters.vehicle_model import (
     ATTITUDE_REMAINDER_UPDATES,
+    BODY_REMAINDER_INTERVAL_S,
+    BODY_REMAINDER_MAX_INTERVAL_S,
     COAST_AFTER_FIXES,
     COAST_AFTER_S,
     COAST_REMAINDER_UPDATES,
@@ -65,6 +67,7 @@ from ngnav.rotation import (
     cross_rows,
     dcm_from_quat,
     euler_from_quat,
+    quat_from_rotvec,
     quat_normalize,
     quat_rotate_by_rotvec,
     skew,
@@ -95,6 +98,52 @@ def _product_derivatives(pairs: Sequence[Sequence[int]]) -> np.ndarray:
 #: The (attitude, velocity) error rows of the body-velocity models' second-order term.
 _DTHETA_DV = np.r_[ATT, VEL]
 _DTHETA_DV_IX = np.ix_(_DTHETA_DV, _DTHETA_DV)
+#: (attitude, velocity, rate) error indices: the body-velocity remainder's variables.
+_DTHETA_DV_DW = np.r_[ATT, VEL, RATE]
+#: Levi-Civita symbol: ``(a x b)_i = EPS[i] a . b``, EPS[i, j, k] = eps_ijk.
+_EPS = np.zeros((3, 3, 3))
+for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+    _EPS[_i, _j, _k] = 1.0
+    _EPS[_i, _k, _j] = -1.0
+
+
+def _axial(x: np.ndarray) -> np.ndarray:
+    """``sum_jk eps_ijk x_jk`` (3,): ``E[a x b]`` for ``x = E[a b^T]``."""
+    return np.array([x[1, 2] - x[2, 1], x[2, 0] - x[0, 2], x[0, 1] - x[1, 0]])
+
+
+def body_velocity_reset_jacobian(
+    dtheta: np.ndarray, dxi_v: np.ndarray, vel_ned_mps: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The velocity rows of the body-velocity error's reset Jacobian, ``(G_vv, G_vtheta)``.
+
+    A correction ``(dtheta, dxi_v)`` (NED rad, NED m/s) injected body-style
+    (:meth:`NavFilter._inject` with ``body_velocity_error``) at the nominal velocity
+    ``vel_ned_mps`` leaves errors ``e`` about the old nominal; about the new one the
+    velocity error is, to first order in ``e``,
+
+    ``xi_v' = (I + [dtheta]x) e_v + ([dtheta]x [v]x - [dxi_v]x - [v]x [dtheta]x / 2) e_theta``
+
+    (``C' dv_b' = exp(dtheta) C (dv_b - dv_b_hat)`` and the new attitude error
+    ``(I + [dtheta]x / 2) e_theta``: ``exp(dtheta') = exp(dtheta + e) exp(-dtheta)``, whose
+    first-order term is ``[dtheta, e] / 2``). Both (3, 3).
+    """
+    st = skew(np.asarray(dtheta, dtype=float))
+    sv = skew(np.asarray(vel_ned_mps, dtype=float))
+    gvv = np.eye(3) + st
+    gvt = st @ sv - skew(np.asarray(dxi_v, dtype=float)) - 0.5 * sv @ st
+    return gvv, gvt
+
+
+#: Largest curvature ``|v| |dtheta|^2 / 2`` (m/s) of a correction the body-frame velocity
+#: error (``NavFilter.body_velocity_error``) injects body-style. A larger attitude
+#: correction (a tilt relearned after :meth:`NavFilter.reopen_attitude`, tens of degrees)
+#: would turn the NED velocity by metres per second beyond the update's linear step and
+#: the next GPS velocities would fail their gate: such a correction is injected as the
+#: NED error's (velocity added, attitude reset only). 0.05 m/s is half a GPS velocity
+#: sigma; at 60 m/s it lets through corrections up to 2.3 deg, the hand-over's 1 deg with
+#: room.
+BODY_INJECTION_MAX_CURVATURE_MPS = 0.05
 
 
 class CovarianceError(RuntimeError):
@@ -276,6 +325,30 @@ class NavFilter:
         angle-of-attack update keeps its counts: its prior along the constraint holds
         the lift law's states, which persist from one update to the next rather than
         being fresh process noise. False (the default): the configured counts everywhere.
+    body_velocity_error : bool
+        Take the velocity error in the body frame: the truth is
+        ``exp(dtheta) C (C^T v + dv_b)``, and the Kalman state's ``VEL`` holds its NED
+        image ``xi_v = C dv_b + dtheta x v`` (equal to the NED error to first order, so
+        F, H and P keep their NED coordinates). The vehicle models (``n_b . v_b = 0``) are
+        then exactly linear, with no attitude-product remainder to count; what changes
+        (:meth:`_inject`, :meth:`propagate`, :meth:`body_velocity_second_order`,
+        :meth:`velocity_curvature`):
+
+        - a correction turns the nominal velocity with the attitude
+          (``v <- exp(dtheta) (v + dv + v x dtheta)``) and the velocity rows take the
+          reset's Jacobian (``xi_v`` moves with the attitude correction by ``V dtheta``
+          per radian of the error left);
+        - the propagation's mean correction is gravity's attitude curvature and the
+          rate-velocity product, not the force's;
+        - the models' remainder is the body velocity's own second order over the
+          interval since the model's last update (rate error times body-velocity error,
+          gravity's attitude curvature);
+        - the NED velocity a user reads, ``v + xi_v + c`` with ``c = dtheta x xi_v -
+          dtheta x (dtheta x v) / 2``, takes ``c``'s mean and covariance (estimates and
+          the GPS velocity fix).
+
+        False (the default): the NED velocity error (docs/filter-notes.md, "the velocity
+        error in the body frame, with the reset's Jacobian").
 
     Attributes
     ----------
@@ -305,6 +378,7 @@ class NavFilter:
     handover_hold_s: float = 0.0
     remainder_off_constraint: bool = False
     count_by_prior_weight: bool = False
+    body_velocity_error: bool = False
     counters: Counters = field(default_factory=Counters)
 
     def __post_init__(self) -> None:
@@ -318,6 +392,8 @@ class NavFilter:
                 raise ValueError(f"{name} must be a finite number >= 0, got {v}")
         self._coast_until = -np.inf
         self._handover_until = -np.inf
+        #: Filter time of each vehicle model's last accepted update, s, by axis.
+        self._model_last_t: dict[int, float] = {}
         self._t_prev_fix = -np.inf
         #: Spacing of the last two GPS fixes received, s (NaN before the second).
         self.fix_interval_s = float("nan")
@@ -517,14 +593,23 @@ class NavFilter:
         f_b0 = f_c + cf + 0.5 * cross_rows(cum, cf)
         c0 = dcm_from_quat(self.q)
         pa = self.P[ATT, ATT]
-        # E[C f] = (I + (P_att - tr(P_att) I) / 2) C f  (second order in the attitude error)
-        m = pa @ c0
-        m *= 0.5
-        m += (1.0 - 0.5 * (pa[0, 0] + pa[1, 1] + pa[2, 2])) * c0
+        g_n = self._g
+        if self.body_velocity_error:
+            # the truth's body velocity moves by f - w x v_b + C_true^T g: its mean holds
+            # gravity's attitude curvature, C^T (P_att - tr(P_att) I) g / 2, and the
+            # rate-velocity product's -E[dw x dv_b]
+            m = c0
+            g_n = g_n + 0.5 * (pa @ g_n - (pa[0, 0] + pa[1, 1] + pa[2, 2]) * g_n)
+            g_n = g_n - c0 @ _axial(self._rate_body_velocity_cov(c0))
+        else:
+            # E[C f] = (I + (P_att - tr(P_att) I) / 2) C f  (second order in the attitude error)
+            m = pa @ c0
+            m *= 0.5
+            m += (1.0 - 0.5 * (pa[0, 0] + pa[1, 1] + pa[2, 2])) * c0
         # the trapezoid's velocity increment, position increment and mean force
         # are weighted sums of a_n = m f_b0 + g over the samples
         y = (wts @ f_b0) @ m.T
-        y += wts1 * self._g
+        y += wts1 * g_n
         self.pos = self.pos + (k * dt) * self.vel + y[1]
         self.vel = self.vel + y[0]
         # attitude: exact product of the sample rotations, with the coning term
@@ -537,7 +622,7 @@ class NavFilter:
         self._last_wdot = wdot[-1].copy()
         self._last_f = f[-1].copy()
         self.t_s += k * dt
-        f_n = y[2] - self._g
+        f_n = y[2] - g_n
         self._predict_covariance(k, dt, c0, f_n, sg)
         self._block = (k, dt, c0)  # for the rate measurement of this block
         self.counters.blocks += 1
@@ -1000,6 +1085,10 @@ class NavFilter:
         _, cwr, _, hv = self.gps_model(self.q, self.w)  # after the position update
         rv = self._eye3 * float(vel_sigma_mps) ** 2
         yv = vel_ned_mps - (self.vel + cwr)
+        if self.body_velocity_error:
+            mc, cc = self.velocity_curvature()
+            yv = yv - mc
+            rv = rv + cc
         nis_v, ok_v = self._gated_update(yv, rv, hv)
         self.counters.gps_used += int(ok_p or ok_v)
         self.counters.gps_rejected_pos += int(not ok_p)
@@ -1253,6 +1342,8 @@ class NavFilter:
             rec += (h[0, ATT].copy(), h[0, VEL].copy(), dv_da, rem, float(var))
         ph = self.P @ h[0] if self.remainder_off_constraint else None
         nis, ok = self._gated_update(np.array([-(v_axis + rem.mean)]), r, h, self.gate1)
+        if ok:
+            self._model_last_t[axis] = self.t_s
         if ok and ph is not None:
             self._move_count_off_constraint(h[0], ph, var, counted - rem.var)
         if log is not None:
@@ -1369,19 +1460,34 @@ class NavFilter:
         with_aoa = axis == VERTICAL and self.layout.n_aoa > 0
         d = 7 if with_aoa else 6
         m = np.zeros((d, d))
-        m[0:3, 0:3] = attitude_product_matrix(a, v)
-        sa = skew(a)
-        m[0:3, 3:6] = sa
-        m[3:6, 0:3] = sa.T
+        mb = None
+        if self.body_velocity_error:
+            # n_b . v_b is linear in (dtheta, xi_v): the remainder is the body velocity's
+            # own second order since the model's last update, over (dtheta, xi_v, dw)
+            mb = self.body_velocity_remainder_matrix(n_b, self._model_interval(axis))
+        else:
+            m[0:3, 0:3] = attitude_product_matrix(a, v)
+            sa = skew(a)
+            m[0:3, 3:6] = sa
+            m[3:6, 0:3] = sa.T
         idx = _DTHETA_DV
         if with_aoa:
             b = c @ t_b
             m[6, 0:3] = m[0:3, 6] = -(b @ skew(v))
             m[6, 3:6] = m[3:6, 6] = -b
             m[6, 6] = -float(a @ v)
-        px = self.P[_DTHETA_DV_IX]
-        if not with_aoa:
-            return remainder_moments(m, px)
+        if mb is not None:
+            # the propagation carries the means of its terms (propagate), so only their
+            # variance is the update's
+            p9 = self.P[np.ix_(_DTHETA_DV_DW, _DTHETA_DV_DW)]
+            mb_mean = remainder_moments(mb, p9).mean
+            if not with_aoa:
+                rem = remainder_moments(mb, p9)
+                return rem._replace(mean=rem.mean - mb_mean)
+        else:
+            px = self.P[_DTHETA_DV_IX]
+            if not with_aoa:
+                return remainder_moments(m, px)
         # x = (dtheta, dv, da, AOA states): the angle's linear error da (through the
         # law's states and, with a law, the speed) beside the states it is made of, for
         # the angle's own second-order terms
@@ -1420,7 +1526,106 @@ class NavFilter:
             vv = np.outer(v_hat, v_hat)
             mx[3:6, 3:6] += dv_da * (slope * (np.eye(3) - vv) / speed + along * vv)
         sel = np.r_[idx, np.arange(ia.start, ia.stop)]
-        return remainder_moments(mx, t @ self.P[np.ix_(sel, sel)] @ t.T)
+        if mb is None:
+            return remainder_moments(mx, t @ self.P[np.ix_(sel, sel)] @ t.T)
+        # x = (dtheta, xi_v, da, AOA states, dw): the angle's terms beside the body
+        # velocity's
+        nx = 7 + na
+        sel = np.r_[sel, np.arange(RATE.start, RATE.stop)]
+        t2 = np.zeros((nx + 3, 6 + na + 3))
+        t2[:nx, : 6 + na] = t
+        t2[nx:, 6 + na :] = np.eye(3)
+        m3 = np.zeros((nx + 3, nx + 3))
+        m3[:nx, :nx] = mx
+        m3[0:6, 0:6] += mb[0:6, 0:6]
+        m3[nx:, 0:6] = mb[6:9, 0:6]
+        m3[0:6, nx:] = mb[0:6, 6:9]
+        m3[nx:, nx:] = mb[6:9, 6:9]
+        rem = remainder_moments(m3, t2 @ self.P[np.ix_(sel, sel)] @ t2.T)
+        return rem._replace(mean=rem.mean - mb_mean)
+
+    def _model_interval(self, axis: int) -> float:
+        """Time since the vehicle model's last accepted update on ``axis``, s.
+
+        :data:`BODY_REMAINDER_INTERVAL_S` before the first, and never more than
+        :data:`BODY_REMAINDER_MAX_INTERVAL_S` (a long pause below the model's speed).
+        """
+        last = self._model_last_t.get(axis)
+        if last is None:
+            return BODY_REMAINDER_INTERVAL_S
+        return min(max(self.t_s - last, 0.0), BODY_REMAINDER_MAX_INTERVAL_S)
+
+    def body_velocity_remainder_matrix(self, n_b: np.ndarray, t_s: float) -> np.ndarray:
+        """The body velocity's second order along ``n_b`` over ``t_s`` s (9, 9).
+
+        With :attr:`body_velocity_error` the models' constraint ``n_b . v_b`` is linear in
+        the error state at the update; what the filter's linear propagation left out
+        since the last update is the body velocity's own second order,
+        ``d dv_b / dt = - dw x dv_b + C^T dtheta x (dtheta x g) / 2 + (linear)``, taken
+        over the interval with the errors at the update (``dv_b`` drifting back by its
+        linear rate ``L = - dw x v_b - w x dv_b + C^T (g x dtheta)``, ``dtheta`` by
+        ``C dw``):
+
+        ``q = T dw^T [n]x dv_b - T^2/2 dw^T A(n, v_b) dw + T^2/2 dw^T [n]x [w]x dv_b
+        - T^2/2 dw^T [n]x C^T [g]x dtheta + T/2 dtheta^T A_g dtheta
+        - T^2/2 dtheta^T A_g C dw + T^3/6 dw^T C^T A_g C dw``,
+
+        ``A(a, v) = (a v^T + v a^T)/2 - (a . v) I``
+        (:func:`filters.vehicle_model.attitude_product_matrix`), ``A_g = A(C n, g)``, and
+        ``dv_b = C^T (xi_v + v x dtheta)``. Returned as ``M`` with ``q = x^T M x / 2``
+        over ``x = (dtheta, xi_v, dw)`` (NED rad, NED m/s, FRD rad/s).
+        """
+        tt = float(t_s)
+        c = dcm_from_quat(self.q)
+        v = self.vel
+        g = self._g
+        a = c @ n_b
+        d_xi = c.T  # dv_b per xi_v
+        d_th = c.T @ skew(v)  # dv_b per dtheta
+        sn = skew(n_b)
+        ag = attitude_product_matrix(a, g)
+        b_wv = tt * sn + 0.5 * tt * tt * sn @ skew(self.w)  # dw^T b_wv dv_b
+        m_wx = b_wv @ d_xi
+        m_wt = b_wv @ d_th - 0.5 * tt * tt * sn @ c.T @ skew(g) - 0.5 * tt * tt * (ag @ c).T
+        m = np.zeros((9, 9))
+        m[0:3, 0:3] = tt * ag
+        m[6:9, 6:9] = -tt * tt * attitude_product_matrix(n_b, c.T @ v) + (tt**3 / 3.0) * (
+            c.T @ ag @ c
+        )
+        m[6:9, 0:3] = m_wt
+        m[0:3, 6:9] = m_wt.T
+        m[6:9, 3:6] = m_wx
+        m[3:6, 6:9] = m_wx.T
+        return m
+
+    def _rate_body_velocity_cov(self, c: np.ndarray) -> np.ndarray:
+        """``E[dw dv_b^T]`` (3, 3) with ``dv_b = C^T (xi_v + v x dtheta)`` (``c`` = C)."""
+        return self.P[RATE, VEL] @ c - self.P[RATE, ATT] @ skew(self.vel) @ c
+
+    def velocity_curvature(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mean (3,) and covariance (3, 3) of the NED velocity's second-order part, m/s.
+
+        With :attr:`body_velocity_error` the true NED velocity is ``v + xi_v + c``,
+        ``c = dtheta x xi_v - dtheta x (dtheta x v) / 2``: each component a quadratic
+        form ``x^T M_i x / 2`` over ``x = (dtheta, xi_v)``, so ``E c_i = tr(M_i P) / 2``
+        and ``Cov(c_i, c_j) = tr(M_i P M_j P) / 2``. Zeros with the NED error (the
+        velocity error is then exactly additive).
+        """
+        if not self.body_velocity_error:
+            return np.zeros(3), np.zeros((3, 3))
+        px = self.P[_DTHETA_DV_IX]
+        mp = []
+        for i in range(3):
+            e = np.zeros(3)
+            e[i] = 1.0
+            m = np.zeros((6, 6))
+            m[0:3, 0:3] = -attitude_product_matrix(e, self.vel)
+            m[0:3, 3:6] = _EPS[i]
+            m[3:6, 0:3] = _EPS[i].T
+            mp.append(m @ px)
+        mean = 0.5 * np.array([np.trace(x) for x in mp])
+        cov = 0.5 * np.array([[float(np.sum(x * y.T)) for y in mp] for x in mp])
+        return mean, cov
 
     def _gated_update(
         self, y: np.ndarray, r: np.ndarray, h: np.ndarray, gate: float | None = None
@@ -1553,8 +1758,19 @@ class NavFilter:
     def _inject(self) -> None:
         dx = self.x
         self.pos = self.pos + dx[POS]
-        self.vel = self.vel + dx[VEL]
         dth = dx[ATT]
+        v_old = self.vel
+        body = self.body_velocity_error and (
+            0.5 * float(np.linalg.norm(v_old)) * float(dth @ dth)
+            <= BODY_INJECTION_MAX_CURVATURE_MPS
+        )
+        if body:
+            # the body velocity takes the correction and the corrected attitude carries it
+            self.vel = dcm_from_quat(quat_from_rotvec(dth)) @ (
+                v_old + dx[VEL] + np.cross(v_old, dth)
+            )
+        else:
+            self.vel = v_old + dx[VEL]
         self.q = quat_rotate_by_rotvec(self.q, dth, left=True)
         self.w = self.w + dx[RATE]
         self.bias = self.bias + dx[self.layout.bias]
@@ -1570,8 +1786,23 @@ class NavFilter:
         hx, hy, hz = 0.5 * hx, 0.5 * hy, 0.5 * hz
         ga = np.array([[1.0, hz, -hy], [-hz, 1.0, hx], [hy, -hx, 1.0]])
         p = self.P
-        p[ATT, :] = ga @ p[ATT, :]
-        p[:, ATT] = p[:, ATT] @ ga.T
+        if body:
+            # the left (NED) attitude error's reset is I + [dth]x / 2 (the expression
+            # above, kept for the NED error, has the sign of a right error's; see
+            # body_velocity_reset_jacobian)
+            ga = ga.T
+            gvv, gvt = body_velocity_reset_jacobian(dth, dx[VEL], v_old)
+            rows_v = p[VEL, :].copy()
+            rows_t = p[ATT, :].copy()
+            p[VEL, :] = gvv @ rows_v + gvt @ rows_t
+            p[ATT, :] = ga @ rows_t
+            cols_v = p[:, VEL].copy()
+            cols_t = p[:, ATT].copy()
+            p[:, VEL] = cols_v @ gvv.T + cols_t @ gvt.T
+            p[:, ATT] = cols_t @ ga.T
+        else:
+            p[ATT, :] = ga @ p[ATT, :]
+            p[:, ATT] = p[:, ATT] @ ga.T
         self.P = 0.5 * (p + p.T)
         self.x = np.zeros(self.x.shape[0])
 

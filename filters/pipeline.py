@@ -581,6 +581,7 @@ class Pipeline:
             handover_hold_s=hold_s if cfg.initial.alignment == "config" else 0.0,
             remainder_off_constraint=cfg.filter.remainder_off_constraint,
             count_by_prior_weight=cfg.filter.count_by_prior_weight,
+            body_velocity_error=cfg.filter.body_velocity_error,
         )
         nf.body_velocity_log = self.body_velocity_log
         self.nf = nf
@@ -784,9 +785,14 @@ class Pipeline:
         if not self.keep_estimates:
             self._rec.clear()
         aoa = (nf.aoa, nf.aoa_sigma) if nf.layout.n_aoa else None
-        self._rec.append(
-            (nf.t_s, nf.pos, nf.vel, nf.q, nf.w, nf.bias, nf.P[:12, :12].copy(), pb, aoa)
-        )
+        p12 = nf.P[:12, :12].copy()
+        vel = nf.vel
+        if nf.body_velocity_error:
+            # the NED velocity a user reads: its second-order part's mean and covariance
+            mc, cc = nf.velocity_curvature()
+            vel = vel + mc
+            p12[VEL, VEL] += cc
+        self._rec.append((nf.t_s, nf.pos, vel, nf.q, nf.w, nf.bias, p12, pb, aoa))
 
     def _block(self, i1: int) -> None:
         nf = self.nf

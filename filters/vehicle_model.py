@@ -58,6 +58,14 @@ COAST_AFTER_S = 1.0
 #: ...or this many intervals of the fixes received, whichever is longer.
 COAST_AFTER_FIXES = 5.0
 
+#: The interval a body-velocity remainder (``NavFilter.body_velocity_error``) is taken
+#: over before a model's first accepted update, s: the models' 5 Hz.
+BODY_REMAINDER_INTERVAL_S = 0.2
+#: ...and the longest it is taken over, s: after a pause (below the models' speed) the
+#: errors at the update no longer describe the whole interval's, and the interval's
+#: powers (up to its cube) would make the remainder the pause's length, not the errors'.
+BODY_REMAINDER_MAX_INTERVAL_S = 1.0
+
 #: Blocks by which the lift law's Jacobian load lags the load the angle is predicted
 #: with. The angle's sensitivity to ``K`` is the load ``u``; taken from this block, its
 #: noise is the noise in the predicted angle, and the update's gain times its innovation
