@@ -144,6 +144,12 @@ def body_velocity_reset_jacobian(
 #: sigma; at 60 m/s it lets through corrections up to 2.3 deg, the hand-over's 1 deg with
 #: room.
 BODY_INJECTION_MAX_CURVATURE_MPS = 0.05
+#: Largest curvature ``|v| tr(P_att) / 2`` (m/s) the attitude's uncertainty may give the
+#: NED velocity while the body-frame velocity error is in use
+#: (:meth:`NavFilter.in_body_frame`): above it (a heading several degrees uncertain, a
+#: tilt reopened) the NED error's linearisation is the better one, since the NED velocity
+#: does not depend on the attitude at all. A GPS velocity sigma (0.1 m/s).
+BODY_FRAME_MAX_CURVATURE_MPS = 0.1
 
 
 class CovarianceError(RuntimeError):
@@ -594,7 +600,7 @@ class NavFilter:
         c0 = dcm_from_quat(self.q)
         pa = self.P[ATT, ATT]
         g_n = self._g
-        if self.body_velocity_error:
+        if self.in_body_frame():
             # the truth's body velocity moves by f - w x v_b + C_true^T g: its mean holds
             # gravity's attitude curvature, C^T (P_att - tr(P_att) I) g / 2, and the
             # rate-velocity product's -E[dw x dv_b]
@@ -1085,7 +1091,7 @@ class NavFilter:
         _, cwr, _, hv = self.gps_model(self.q, self.w)  # after the position update
         rv = self._eye3 * float(vel_sigma_mps) ** 2
         yv = vel_ned_mps - (self.vel + cwr)
-        if self.body_velocity_error:
+        if self.in_body_frame():
             mc, cc = self.velocity_curvature()
             yv = yv - mc
             rv = rv + cc
@@ -1461,7 +1467,7 @@ class NavFilter:
         d = 7 if with_aoa else 6
         m = np.zeros((d, d))
         mb = None
-        if self.body_velocity_error:
+        if self.in_body_frame():
             # n_b . v_b is linear in (dtheta, xi_v): the remainder is the body velocity's
             # own second order since the model's last update, over (dtheta, xi_v, dw)
             mb = self.body_velocity_remainder_matrix(n_b, self._model_interval(axis))
@@ -1598,6 +1604,22 @@ class NavFilter:
         m[3:6, 6:9] = m_wx.T
         return m
 
+    def in_body_frame(self) -> bool:
+        """Whether the velocity error is taken in the body frame now.
+
+        With :attr:`body_velocity_error`, while the attitude's uncertainty curves the NED
+        velocity by at most :data:`BODY_FRAME_MAX_CURVATURE_MPS`
+        (``|v| tr(P_att) / 2``, the size of ``dtheta x (dtheta x v) / 2``); otherwise the
+        NED error's updates, remainder and injection. The two errors agree to first order,
+        so P means the same either way and the filter may change from one to the other
+        between steps; what differs is second order, which is what this bounds.
+        """
+        if not self.body_velocity_error:
+            return False
+        pa = self.P[ATT, ATT]
+        curv = 0.5 * float(np.linalg.norm(self.vel)) * float(pa[0, 0] + pa[1, 1] + pa[2, 2])
+        return curv <= BODY_FRAME_MAX_CURVATURE_MPS
+
     def _rate_body_velocity_cov(self, c: np.ndarray) -> np.ndarray:
         """``E[dw dv_b^T]`` (3, 3) with ``dv_b = C^T (xi_v + v x dtheta)`` (``c`` = C)."""
         return self.P[RATE, VEL] @ c - self.P[RATE, ATT] @ skew(self.vel) @ c
@@ -1611,7 +1633,7 @@ class NavFilter:
         and ``Cov(c_i, c_j) = tr(M_i P M_j P) / 2``. Zeros with the NED error (the
         velocity error is then exactly additive).
         """
-        if not self.body_velocity_error:
+        if not self.in_body_frame():
             return np.zeros(3), np.zeros((3, 3))
         px = self.P[_DTHETA_DV_IX]
         mp = []
@@ -1760,7 +1782,7 @@ class NavFilter:
         self.pos = self.pos + dx[POS]
         dth = dx[ATT]
         v_old = self.vel
-        body = self.body_velocity_error and (
+        body = self.in_body_frame() and (
             0.5 * float(np.linalg.norm(v_old)) * float(dth @ dth)
             <= BODY_INJECTION_MAX_CURVATURE_MPS
         )

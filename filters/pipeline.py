@@ -787,7 +787,7 @@ class Pipeline:
         aoa = (nf.aoa, nf.aoa_sigma) if nf.layout.n_aoa else None
         p12 = nf.P[:12, :12].copy()
         vel = nf.vel
-        if nf.body_velocity_error:
+        if nf.in_body_frame():
             # the NED velocity a user reads: its second-order part's mean and covariance
             mc, cc = nf.velocity_curvature()
             vel = vel + mc
