@@ -242,12 +242,14 @@ class FilterSettings:
     exactly linear, their attitude-product remainder, which persists as long as the tilt
     errors do and needed the counts above, is gone, and the velocity rows take the
     correction's reset Jacobian instead. The velocity a user reads stays NED, with the
-    parametrization's curvature in its mean and covariance. Off in both scenarios: on
-    ``tactical`` it lifts the joint NEES from 84.0 to 89.7 % inside (runs 0-49, with
-    ``coast_remainder_updates = 10``), but without the vehicle models, or after a lost
-    tilt is reopened, heading errors of several degrees curve the NED velocity by more
-    than a GPS velocity sigma and the filter loses its tilt (docs/filter-notes.md, "the
-    velocity error in the body frame, with the reset's Jacobian").
+    parametrization's curvature in its mean and covariance. The filter uses it only while
+    its attitude is known to about 2 deg (``filters.ekf.NavFilter.in_body_frame``) and the
+    NED error otherwise. Off in both scenarios: on ``tactical`` (with
+    ``coast_remainder_updates = 10``) it lifts the joint NEES from 84.0 to 90.1 % inside
+    (runs 0-49, every block inside), but a hand-over told 1 deg while 15 deg off relearns
+    its tilt twice as badly with it, since the body-frame error trusts P's attitude
+    (docs/filter-notes.md, "the velocity error in the body frame, with the reset's
+    Jacobian").
     """
 
     rate_hz: float = 100.0

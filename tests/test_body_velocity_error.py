@@ -209,3 +209,24 @@ def test_setting_reaches_the_filter_and_keeps_its_covariance_positive():
     cov = res.estimates.cov_nav
     assert np.all(np.linalg.eigvalsh(cov)[:, 0] > 0)
     assert res.estimates.t_s[-1] > 2.9
+
+
+def test_body_frame_only_while_the_attitude_is_known():
+    """``in_body_frame``: the body-frame error while the attitude's uncertainty curves
+    the NED velocity by at most ``BODY_FRAME_MAX_CURVATURE_MPS`` (``|v| tr(P_att) / 2``),
+    the NED error above it and whenever the setting is off; the curvature read-out is
+    zero in the NED error."""
+    from filters.ekf import BODY_FRAME_MAX_CURVATURE_MPS
+
+    nf, _, _ = level_filter()
+    nf.vel = np.array([0.0, 60.0, 0.0])
+    limit_var = 2.0 * BODY_FRAME_MAX_CURVATURE_MPS / 60.0  # tr(P_att) at the limit, rad^2
+    nf.P[ATT, ATT] = np.eye(3) * (0.9 * limit_var / 3.0)
+    assert not nf.in_body_frame()  # the setting is off
+    nf.body_velocity_error = True
+    assert nf.in_body_frame()
+    assert np.any(nf.velocity_curvature()[1])
+    nf.P[ATT, ATT] = np.eye(3) * (1.1 * limit_var / 3.0)
+    assert not nf.in_body_frame()
+    mean, cov = nf.velocity_curvature()
+    assert not np.any(mean) and not np.any(cov)
