@@ -400,6 +400,8 @@ class NavFilter:
         self._handover_until = -np.inf
         #: Filter time of each vehicle model's last accepted update, s, by axis.
         self._model_last_t: dict[int, float] = {}
+        #: Whether each vehicle model's last update passed its gate, by axis.
+        self._model_last_ok: dict[int, bool] = {}
         self._t_prev_fix = -np.inf
         #: Spacing of the last two GPS fixes received, s (NaN before the second).
         self.fix_interval_s = float("nan")
@@ -1350,6 +1352,7 @@ class NavFilter:
         nis, ok = self._gated_update(np.array([-(v_axis + rem.mean)]), r, h, self.gate1)
         if ok:
             self._model_last_t[axis] = self.t_s
+        self._model_last_ok[axis] = ok
         if ok and ph is not None:
             self._move_count_off_constraint(h[0], ph, var, counted - rem.var)
         if log is not None:
@@ -1612,9 +1615,17 @@ class NavFilter:
         (``|v| tr(P_att) / 2``, the size of ``dtheta x (dtheta x v) / 2``); otherwise the
         NED error's updates, remainder and injection. The two errors agree to first order,
         so P means the same either way and the filter may change from one to the other
-        between steps; what differs is second order, which is what this bounds.
+        between steps; what differs is second order, which is what this bounds. Also the
+        NED error while the last GPS velocity or either vehicle model's last update failed
+        its gate: the body-frame error trusts P's attitude, and a hand-over told 1 deg while
+        15 deg off otherwise fused GPS velocities through it for a second longer and
+        relearned its tilt twice as badly (docs/filter-notes.md).
         """
         if not self.body_velocity_error:
+            return False
+        if self._consec_vel_rejects > 0 or not all(self._model_last_ok.values()):
+            # a GPS velocity or a vehicle model just failed its gate: P's attitude is in
+            # doubt, and the body-frame error would fuse through it
             return False
         pa = self.P[ATT, ATT]
         curv = 0.5 * float(np.linalg.norm(self.vel)) * float(pa[0, 0] + pa[1, 1] + pa[2, 2])

@@ -996,8 +996,8 @@ def test_vehicle_model_switch_is_a_setting_that_reaches_the_filter(setting):
 
 def test_vehicle_model_rate_holds_5_hz_over_the_hand_over_and_its_own_rate_after():
     """``filter.vehicle_model_rate_hz``: the sideslip and angle-of-attack updates run
-    at 5 Hz while the filter counts the remainder as a coast's (``tactical``'s 8 s
-    hand-over hold: ``coast_remainder_updates`` 40 over 5 Hz) and at the set rate
+    at 5 Hz while the filter counts the remainder as a coast's (``tactical``'s hand-over
+    hold: ``coast_remainder_updates`` over 5 Hz) and at the set rate
     after it, each axis once per update time; the default (5 Hz) keeps them at 5 Hz."""
     from filters.pipeline import run_filter
     from ngnav.flight_scenario import load_flight
@@ -1026,7 +1026,7 @@ def test_vehicle_model_rate_holds_5_hz_over_the_hand_over_and_its_own_rate_after
         # both axes at every update time
         np.testing.assert_array_equal(t[axes == LATERAL], t[axes == VERTICAL])
         times[rate] = t[axes == LATERAL]
-    hold_s = 40.0 / 5.0
+    hold_s = scn.filter.coast_remainder_updates / 5.0
     for rate, t in times.items():
         gaps = np.diff(t)
         in_hold = t[1:] <= t[0] + hold_s

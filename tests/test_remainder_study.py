@@ -266,12 +266,19 @@ def test_remainder_counts_are_settings_that_reach_the_update():
                 # the counts as configured (tactical.toml scales them by the prior's
                 # weight; tests/test_ekf_models.py checks that path)
                 "filter.count_by_prior_weight=false",
+                # the NED error, whose remainder has the attitude part these counts
+                # count (tactical.toml takes the body frame's, which has none), and its
+                # hand-over count, which covers both attitude counts through the hold
+                "filter.body_velocity_error=false",
+                "filter.coast_remainder_updates=40",
             ],
         )
         sim = simulate_flight(scn, 0)
         log = []
         run_filter(sim.samples, sim.fixes, sim.config, body_velocity_log=log)
-        firsts[n_att] = next(r for r in log if r.axis == LATERAL and r.t_s >= 8.0)
+        # the first update after the hand-over's hold, before which the count is the hold's
+        hold_s = scn.filter.coast_remainder_updates / 5.0
+        firsts[n_att] = next(r for r in log if r.axis == LATERAL and r.t_s >= hold_s)
     a, b = firsts[40.0], firsts[7.0]
     assert a.t_s == b.t_s and a.remainder == b.remainder
     speed = np.hypot(*a.vel_ned_mps[:2])
@@ -288,7 +295,7 @@ def test_remainder_cli():
     out = json.loads(proc.stdout)
     assert out["runs"] == 2 and out["left_out"] == []
     counts = ("remainder_updates", "attitude_remainder_updates", "coast_remainder_updates")
-    assert tuple(out[k] for k in counts) == (4.0, 7.0, 40.0)  # tactical.toml: 7
+    assert tuple(out[k] for k in counts) == (4.0, 7.0, 10.0)  # tactical.toml: 7, 10
     assert set(out["models"]) == {"lateral", "vertical"}  # tactical flies both models
     for m in out["models"].values():
         assert [(w["t0_s"], w["t1_s"]) for w in m["windows"]] == [(0.0, 30.0), (30.0, 60.0)]
@@ -349,22 +356,26 @@ def test_coast_counts_the_remainder_longer_and_holds_after():
 
 def test_an_outage_switches_the_count_for_its_length_and_the_hold():
     """End to end: a short ``tactical`` flight with a 5 s GPS outage from 20 s counts
-    its vehicle-model updates as coasting from 1 s into the outage until 8 s (40
-    updates at 5 Hz) after the GPS is back, both models; without an outage none.
-    Either way its first 8 s, after the launcher's hand-over, count as the hand-over."""
+    its vehicle-model updates as coasting from 1 s into the outage until the coast's
+    count of 5 Hz updates (``coast_remainder_updates``: 10, 2 s) after the GPS is back,
+    both models; without an outage none. Either way its first that many updates, after
+    the launcher's hand-over, count as the hand-over."""
     key = "vehicle-model updates counted as coasting"
     base = ["run.rate_hz=200"]
-    sim = simulate_flight(load_flight("tactical", base), 0)
+    scn = load_flight("tactical", base)
+    count = scn.filter.coast_remainder_updates
+    hold_s = count / 5.0
+    sim = simulate_flight(scn, 0)
     counts = run_filter(sim.samples, sim.fixes, sim.config).counts
     assert counts[key] == 0
-    # 8 s at 5 Hz, both models, from the first update at the start
-    assert counts["vehicle-model updates counted as the hand-over"] == 2 * 40
+    # the hold at 5 Hz, both models, from the first update at the start
+    assert counts["vehicle-model updates counted as the hand-over"] == 2 * count
     scn = load_flight("tactical", [*base, "gps.outage_start_s=20", "gps.outage_s=5"])
     sim = simulate_flight(scn, 0)
     n = run_filter(sim.samples, sim.fixes, sim.config).counts[key]
-    # (5 s - 1 s + 8 s) at 5 Hz, two models; the fixes' 0.1 s spacing and 0.05 s
+    # (5 s - 1 s + the hold) at 5 Hz, two models; the fixes' 0.1 s spacing and 0.05 s
     # latency move each end by at most a fix and an update
-    assert abs(n - 2 * 5 * 12) <= 2 * 2, n
+    assert abs(n - 2 * 5 * (4.0 + hold_s)) <= 2 * 2, n
 
 
 def test_a_handover_counts_the_remainder_as_a_coasts_end():
