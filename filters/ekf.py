@@ -1489,10 +1489,9 @@ class NavFilter:
             # the propagation carries the means of its terms (propagate), so only their
             # variance is the update's
             p9 = self.P[np.ix_(_DTHETA_DV_DW, _DTHETA_DV_DW)]
-            mb_mean = remainder_moments(mb, p9).mean
             if not with_aoa:
-                rem = remainder_moments(mb, p9)
-                return rem._replace(mean=rem.mean - mb_mean)
+                return remainder_moments(mb, p9)._replace(mean=0.0)
+            mb_mean = remainder_moments(mb, p9).mean
         else:
             px = self.P[_DTHETA_DV_IX]
             if not with_aoa:
