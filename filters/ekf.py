@@ -107,6 +107,14 @@ for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
     _EPS[_i, _k, _j] = -1.0
 
 
+_E3 = np.eye(3)
+#: The NED velocity curvature's bilinear part, ``(dtheta x xi_v)_i``, as ``x^T M_i x / 2``
+#: over ``x = (dtheta, xi_v)`` (:meth:`NavFilter.velocity_curvature`).
+_CURVATURE_CROSS = np.zeros((3, 6, 6))
+_CURVATURE_CROSS[:, 0:3, 3:6] = _EPS
+_CURVATURE_CROSS[:, 3:6, 0:3] = _EPS.transpose(0, 2, 1)
+
+
 def _axial(x: np.ndarray) -> np.ndarray:
     """``sum_jk eps_ijk x_jk`` (3,): ``E[a x b]`` for ``x = E[a b^T]``."""
     return np.array([x[1, 2] - x[2, 1], x[2, 0] - x[0, 2], x[0, 1] - x[1, 0]])
@@ -1645,18 +1653,15 @@ class NavFilter:
         """
         if not self.in_body_frame():
             return np.zeros(3), np.zeros((3, 3))
-        px = self.P[_DTHETA_DV_IX]
-        mp = []
-        for i in range(3):
-            e = np.zeros(3)
-            e[i] = 1.0
-            m = np.zeros((6, 6))
-            m[0:3, 0:3] = -attitude_product_matrix(e, self.vel)
-            m[0:3, 3:6] = _EPS[i]
-            m[3:6, 0:3] = _EPS[i].T
-            mp.append(m @ px)
-        mean = 0.5 * np.array([np.trace(x) for x in mp])
-        cov = 0.5 * np.array([[float(np.sum(x * y.T)) for y in mp] for x in mp])
+        v = self.vel
+        m = _CURVATURE_CROSS.copy()  # (3, 6, 6): M_i over (dtheta, xi_v)
+        # the attitude block -A(e_i, v) = -(e_i v^T + v e_i^T) / 2 + v_i I
+        m[:, 0:3, 0:3] = -0.5 * (_E3[:, :, None] * v[None, None, :])
+        m[:, 0:3, 0:3] -= 0.5 * (v[None, :, None] * _E3[:, None, :])
+        m[:, 0:3, 0:3] += v[:, None, None] * _E3[None, :, :]
+        mp = m @ self.P[_DTHETA_DV_IX]
+        mean = 0.5 * np.trace(mp, axis1=1, axis2=2)
+        cov = 0.5 * np.einsum("iab,jba->ij", mp, mp)
         return mean, cov
 
     def _gated_update(
