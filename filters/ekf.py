@@ -1818,16 +1818,13 @@ class NavFilter:
             if self.layout.n_aoa == 2:
                 self.aoa_k += float(da[1])
         # reset Jacobian of the attitude error (first order): G = I except
-        # G[ATT, ATT] = I - [dtheta]x / 2
+        # G[ATT, ATT] = I + [dtheta]x / 2, the left (NED) error's reset (checked
+        # against exact rotations in tests/test_body_velocity_error.py)
         hx, hy, hz = dth.tolist()
         hx, hy, hz = 0.5 * hx, 0.5 * hy, 0.5 * hz
-        ga = np.array([[1.0, hz, -hy], [-hz, 1.0, hx], [hy, -hx, 1.0]])
+        ga = np.array([[1.0, -hz, hy], [hz, 1.0, -hx], [-hy, hx, 1.0]])
         p = self.P
         if body:
-            # the left (NED) attitude error's reset is I + [dth]x / 2 (the expression
-            # above, kept for the NED error, has the sign of a right error's; see
-            # body_velocity_reset_jacobian)
-            ga = ga.T
             gvv, gvt = body_velocity_reset_jacobian(dth, dx[VEL], v_old)
             rows_v = p[VEL, :].copy()
             rows_t = p[ATT, :].copy()

@@ -230,3 +230,43 @@ def test_body_frame_only_while_the_attitude_is_known():
     assert not nf.in_body_frame()
     mean, cov = nf.velocity_curvature()
     assert not np.any(mean) and not np.any(cov)
+
+
+@pytest.mark.parametrize("body", [False, True])
+def test_injection_resets_the_attitude_covariance_as_exact_rotations_do(body):
+    """After a correction ``dth_hat`` the truth's attitude error about the new nominal is
+    ``log(exp(e) exp(-dth_hat))`` with ``e ~ N(dth_hat, P)``: the filter's injected
+    covariance against 200 000 such errors built with exact rotations. The reset of a
+    left error is ``I + [dth_hat]x / 2``; the opposite sign's covariance misses the
+    sampled one by far more than the filter's may."""
+    nf, _, _ = level_filter()
+    nf.body_velocity_error = body
+    nf.q = quat_from_euler(*np.radians([20.0, 5.0, 80.0]))
+    nf.vel = np.array([1.0, 2.0, 0.0])  # slow, so that the body path stays on
+    sig = np.array([0.05, 0.01, 0.03])  # rad, anisotropic: an isotropic P hides the sign
+    p_att = np.diag(sig**2)
+    nf.P[ATT, :] = 0.0
+    nf.P[:, ATT] = 0.0
+    nf.P[ATT, ATT] = p_att
+    dth_hat = np.array([0.1, -0.08, 0.12])
+    nf.x = np.zeros_like(nf.x)
+    nf.x[ATT] = dth_hat
+    q_old = nf.q.copy()
+    nf._inject()  # the private step every update ends with, driven directly
+    rng = np.random.default_rng(11)
+    e = rng.multivariate_normal(dth_hat, p_att, size=200_000)
+    q_new = nf.q
+    new = np.empty_like(e)
+    for k, ek in enumerate(e):
+        q_t = quat_multiply(quat_from_rotvec(ek), q_old)
+        d = quat_multiply(q_t, quat_conjugate(q_new))
+        new[k] = quat_to_rotvec(-d if d[0] < 0 else d)
+    emp = np.cov(new.T)
+    half = 0.5 * dth_hat
+    wrong_g = np.eye(3) - np.array(
+        [[0.0, -half[2], half[1]], [half[2], 0.0, -half[0]], [-half[1], half[0], 0.0]]
+    )
+    miss = np.linalg.norm(nf.P[ATT, ATT] - emp)
+    miss_wrong = np.linalg.norm(wrong_g @ p_att @ wrong_g.T - emp)
+    assert np.abs(new.mean(axis=0)).max() < 5e-3  # the injection removed the mean
+    assert miss < 0.1 * miss_wrong
