@@ -19,6 +19,7 @@ from ngnav.rotation import (
     quat_from_rotvec,
     quat_multiply,
     quat_to_rotvec,
+    skew,
 )
 from tests.helpers import level_filter
 
@@ -262,10 +263,7 @@ def test_injection_resets_the_attitude_covariance_as_exact_rotations_do(body):
         d = quat_multiply(q_t, quat_conjugate(q_new))
         new[k] = quat_to_rotvec(-d if d[0] < 0 else d)
     emp = np.cov(new.T)
-    half = 0.5 * dth_hat
-    wrong_g = np.eye(3) - np.array(
-        [[0.0, -half[2], half[1]], [half[2], 0.0, -half[0]], [-half[1], half[0], 0.0]]
-    )
+    wrong_g = np.eye(3) - skew(0.5 * dth_hat)
     miss = np.linalg.norm(nf.P[ATT, ATT] - emp)
     miss_wrong = np.linalg.norm(wrong_g @ p_att @ wrong_g.T - emp)
     assert np.abs(new.mean(axis=0)).max() < 5e-3  # the injection removed the mean
