@@ -243,13 +243,14 @@ class FilterSettings:
     errors do and needed the counts above, is gone, and the velocity rows take the
     correction's reset Jacobian instead. The velocity a user reads stays NED, with the
     parametrization's curvature in its mean and covariance. The filter uses it only while
-    its attitude is known to about 2 deg (``filters.ekf.NavFilter.in_body_frame``) and the
-    NED error otherwise. Off in both scenarios: on ``tactical`` (with
-    ``coast_remainder_updates = 10``) it lifts the joint NEES from 84.0 to 90.1 % inside
-    (runs 0-49, every block inside), but a hand-over told 1 deg while 15 deg off relearns
-    its tilt twice as badly with it, since the body-frame error trusts P's attitude
-    (docs/filter-notes.md, "the velocity error in the body frame, with the reset's
-    Jacobian").
+    its attitude is known to about 2 deg and the last GPS velocity and vehicle-model
+    updates passed their gates (``filters.ekf.NavFilter.in_body_frame``: without that
+    guard a hand-over told 1 deg while 15 deg off relearned its tilt twice as badly), and
+    the NED error otherwise. On in ``tactical`` (with ``coast_remainder_updates = 10``),
+    where it lifts the joint NEES from 84.0 to 89.7 % inside on runs 0-49 (at f2cb205);
+    off in ``uav-survey``, whose coast's end it left optimistic and whose joint it lowered
+    while GPS holds (docs/filter-notes.md, "the velocity error in the body frame, with the
+    reset's Jacobian" and "Not met yet").
     """
 
     rate_hz: float = 100.0
