@@ -411,6 +411,59 @@ def nees_profile(t_s: np.ndarray, averages: dict[str, np.ndarray], window_s: flo
     return rows
 
 
+#: Quantiles :func:`nees_tails` compares with chi-square's.
+TAIL_QUANTILES = (0.5, 0.95, 0.99)
+
+
+def nees_tails(t_s: np.ndarray, per_run: np.ndarray, dim: int, window_s: float) -> list[dict]:
+    """How the runs' own NEES values spread, window by window, against chi-square's.
+
+    The share criterion reads the run average at each epoch; it cannot tell a
+    covariance too large or too small by a factor (every run's NEES scaled) from a
+    covariance right for most runs but far too small for a few (a heavy tail: the
+    average pushed up by those few while the typical run reads low). This tells
+    them apart. ``per_run`` (R, E) holds each run's NEES of a ``dim``-dof block at
+    the epochs ``t_s`` (E,); over each window of ``window_s`` s the values of all
+    runs and epochs are pooled (a sample of the window's marginal distribution;
+    the epochs are correlated in time, which widens its sampling error but does
+    not bias it), and each row holds ``t0_s``, ``t1_s``, ``n`` (finite values),
+    ``mean_ratio`` (their mean over ``dim``), ``q<p>_ratio`` for each of
+    :data:`TAIL_QUANTILES` (their quantile over chi-square's with ``dim`` dof) and
+    ``var_ratio`` (their variance over ``2 dim``). A consistent filter reads 1
+    throughout; a scale error moves every ratio alike; a heavy tail reads a median
+    ratio below 1 with the 0.99 ratio and the variance ratio above it.
+    """
+    from scipy.stats import chi2
+
+    if not (np.isfinite(window_s) and window_s > 0):
+        raise ValueError(f"tails window must be a positive number of seconds, got {window_s}")
+    per_run = np.asarray(per_run, dtype=float)
+    if per_run.ndim != 2 or per_run.shape[1] != t_s.shape[0]:
+        raise ValueError(
+            f"per_run must be (runs, {t_s.shape[0]} epochs), got shape {per_run.shape}"
+        )
+    ref = {q: float(chi2.ppf(q, dim)) for q in TAIL_QUANTILES}
+    rows = []
+    for t0 in np.arange(t_s[0], t_s[-1] + 1e-9, window_s):
+        m = (t_s >= t0) & (t_s < t0 + window_s)
+        vals = per_run[:, m].ravel()
+        vals = vals[np.isfinite(vals)]
+        if vals.size < 2:
+            continue
+        row = {
+            "t0_s": float(t0),
+            "t1_s": float(t0 + window_s),
+            "n": int(vals.size),
+            "mean_ratio": float(vals.mean() / dim),
+        }
+        qs = np.quantile(vals, list(TAIL_QUANTILES))
+        for q, v in zip(TAIL_QUANTILES, qs, strict=True):
+            row[f"q{q:g}_ratio"] = float(v / ref[q])
+        row["var_ratio"] = float(vals.var(ddof=1) / (2.0 * dim))
+        rows.append(row)
+    return rows
+
+
 def nees_cycle(
     t_s: np.ndarray,
     averages: dict[str, np.ndarray],
@@ -465,6 +518,7 @@ def consistency(
     reference: bool = False,
     sets: int = 1,
     cycle_s: float | None = None,
+    tails_s: float | None = None,
 ) -> dict:
     """NEES/NIS over ``runs`` Monte Carlo runs; share of epochs inside the 95 % bounds.
 
@@ -481,6 +535,9 @@ def consistency(
     ``cycle_s`` adds ``cycle``: the NEES blocks' means by phase within a cycle of
     that many seconds, with the joint's shares below and above its bounds at each
     phase (:func:`nees_cycle`).
+    ``tails_s`` adds ``tails``: per NEES block, the runs' own values against
+    chi-square's over windows of that many seconds (:func:`nees_tails`): a scale error
+    or a heavy tail.
     ``reference`` adds to every block the share a consistent filter would reach on
     it (``consistent_share``, :mod:`filters.share_reference`): the criterion's own
     spread, from the statistic's correlation in time (measured with other jobs on the
@@ -506,6 +563,8 @@ def consistency(
         raise ValueError(f"runs must be at least 1, got {runs}")
     if sets < 1:
         raise ValueError(f"sets must be at least 1, got {sets}")
+    if tails_s is not None and not (np.isfinite(tails_s) and tails_s > 0):
+        raise ValueError(f"tails window must be a positive number of seconds, got {tails_s}")
     if cycle_s is not None and not (np.isfinite(cycle_s) and cycle_s > 0):
         raise ValueError(f"cycle must be a positive number of seconds, got {cycle_s}")
     per_set = runs
@@ -549,6 +608,12 @@ def consistency(
         out["control_from"] = _control_blocks(results, runs, from_s, reference)
     if profile_s is not None:
         out["profile"] = nees_profile(results[0]["t_s"], averages, profile_s)
+    if tails_s is not None:
+        t0 = results[0]["t_s"]
+        out["tails"] = {
+            name: nees_tails(t0, np.stack([r["nees"][name] for r in results]), dim, tails_s)
+            for name, dim in dims.items()
+        }
     if cycle_s is not None:
         out["cycle"] = nees_cycle(
             results[0]["t_s"], averages, cycle_s, {"all": chi2_bounds(dims["all"], runs)}

@@ -423,6 +423,7 @@ def cmd_consistency(args: argparse.Namespace) -> int:
         reference=args.reference,
         sets=args.sets,
         cycle_s=args.cycle,
+        tails_s=args.tails,
     )
     if args.json:
         print(json.dumps(out, indent=2))
@@ -484,7 +485,24 @@ def cmd_consistency(args: argparse.Namespace) -> int:
             )
     if "cycle" in out:
         _print_cycle(out["cycle"])
+    if "tails" in out:
+        _print_tails(out["tails"]["all"])
     return 0
+
+
+def _print_tails(rows: list[dict]) -> None:
+    print(
+        "  the joint NEES's spread over runs by window (filters.experiments.nees_tails): "
+        "the runs' values against chi-square's (12 dof), 1 when consistent; every ratio "
+        "alike: a scale error; median below 1 with the 0.99 quantile and variance above: "
+        "a heavy tail (--json: every block)"
+    )
+    print("    window s          mean  median   q0.95   q0.99     var")
+    for r in rows:
+        print(
+            f"    {r['t0_s']:6.1f}-{r['t1_s']:6.1f}  {r['mean_ratio']:6.2f}  {r['q0.5_ratio']:6.2f}"
+            f"  {r['q0.95_ratio']:6.2f}  {r['q0.99_ratio']:6.2f}  {r['var_ratio']:6.2f}"
+        )
 
 
 def _print_cycle(rows: list[dict]) -> None:
@@ -650,6 +668,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         metavar="S",
         help="also print each NEES block's run average over windows of S seconds",
+    )
+    p.add_argument(
+        "--tails",
+        type=float,
+        metavar="S",
+        help="also print, over windows of S seconds, the runs' own joint NEES against "
+        "chi-square's quantiles: a covariance off by a scale or right but for a few runs",
     )
     p.add_argument(
         "--cycle",

@@ -118,3 +118,72 @@ def test_cli_cycle_profile():
     assert sum(line.startswith("      0.") for line in text.splitlines()) >= 20
     bad = run_cli(*base, "--cycle", "0.215", check=False)
     assert bad.returncode != 0 and "whole number" in bad.stderr
+
+
+def test_tails_tell_a_scale_error_from_a_heavy_tail():
+    """``nees_tails`` on draws whose law is known. Chi-square draws (12 dof) read 1 in
+    every ratio; the same draws scaled by 0.8 read 0.8 in each (a scale error); a
+    mixture of 95 % scaled by 0.8 and 5 % by 4 (mean 0.96: an average NEES that looks
+    nearly right) reads a median below 1 and a 0.99 quantile and variance far above.
+    Tolerances are the ratios' sampling error on 40 000 draws (the median's about
+    0.5 %, the 0.99 quantile's about 2 %, the variance's about 3 %), widened 3-4 times."""
+    from scipy.stats import chi2
+
+    from filters.experiments import nees_tails
+
+    rng = np.random.default_rng([2026, 7])
+    runs, epochs = 200, 400
+    t = np.arange(epochs) * 0.05  # two 10 s windows of 200 epochs each
+    x = rng.chisquare(12, (runs, epochs))
+
+    def ratios(v: np.ndarray) -> list[dict]:
+        rows = nees_tails(t, v, 12, 10.0)
+        assert [(r["t0_s"], r["t1_s"], r["n"]) for r in rows] == [(0, 10, 40000), (10, 20, 40000)]
+        return rows
+
+    for r in ratios(x):
+        for key, tol in (("mean_ratio", 0.02), ("q0.5_ratio", 0.02), ("q0.95_ratio", 0.04)):
+            assert r[key] == pytest.approx(1.0, abs=tol), key
+        assert r["q0.99_ratio"] == pytest.approx(1.0, abs=0.06)
+        assert r["var_ratio"] == pytest.approx(1.0, abs=0.1)
+    for r in ratios(0.8 * x):
+        for key in ("mean_ratio", "q0.5_ratio", "q0.95_ratio", "q0.99_ratio"):
+            assert r[key] == pytest.approx(0.8, abs=0.05), key
+        assert r["var_ratio"] == pytest.approx(0.64, abs=0.08)
+    tail = rng.random((runs, epochs)) < 0.05
+    for r in ratios(np.where(tail, 4.0, 0.8) * x):
+        assert r["mean_ratio"] == pytest.approx(0.96, abs=0.03)
+        assert r["q0.5_ratio"] < 0.86
+        assert r["q0.99_ratio"] > 1.5
+        assert r["var_ratio"] > 3.0
+    # NaN epochs (no truth) are left out of the pool, not counted as values
+    y = x.copy()
+    y[:, :100] = np.nan
+    assert nees_tails(t, y, 12, 10.0)[0]["n"] == 20000
+    assert chi2.ppf(0.5, 12) == pytest.approx(11.34, abs=0.01)
+    with pytest.raises(ValueError, match="positive number of seconds"):
+        nees_tails(t, x, 12, 0.0)
+    with pytest.raises(ValueError, match="per_run must be"):
+        nees_tails(t, x[:, :10], 12, 10.0)
+
+
+def test_cli_tails():
+    """``ngnav consistency --tails 10`` as a real subprocess: a row per 10 s window for
+    every block, each window pooling every run's epochs in it (the 60 s flight's
+    0.01 s epochs), its mean ratio equal to the profile's run-averaged mean over the
+    block's dof; the text report prints the joint's rows."""
+    base = ("consistency", *SHORT_TACTICAL_ARGS, "--workers", "1", "--runs", "2")
+    out = json.loads(run_cli(*base, "--tails", "10", "--profile", "10", "--json").stdout)
+    dims = {"pos": 3, "vel": 3, "att": 3, "rate": 3, "all": 12}
+    for name, dim in dims.items():
+        rows = out["tails"][name]
+        assert [(r["t0_s"], r["t1_s"]) for r in rows] == [
+            (p["t0_s"], p["t1_s"]) for p in out["profile"]
+        ]
+        assert len(rows) == 6
+        assert sum(r["n"] for r in rows) == 2 * (round(60.0 / 0.01) + 1)
+        for r, p in zip(rows, out["profile"], strict=True):
+            assert r["mean_ratio"] * dim == pytest.approx(p[name], rel=1e-5)
+    text = run_cli(*base, "--tails", "10").stdout
+    assert "spread over runs by window" in text
+    assert sum(line.startswith("      10.0-") for line in text.splitlines()) == 1
