@@ -34,11 +34,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from filterpy.kalman import predict as kf_predict
-from filterpy.kalman import update as kf_update
 from scipy.stats import chi2
 
 from filters.state import ATT, B_F, B_WDOT, N_NAV, POS, RATE, VEL, StateLayout, b_quad
-from filters.updates import quadratic_form, update_correlated
+from filters.updates import quadratic_form, update_consider
 from filters.vehicle_model import (
     ATTITUDE_REMAINDER_UPDATES,
     BODY_REMAINDER_INTERVAL_S,
@@ -321,6 +320,12 @@ class NavFilter:
         (a hand-over): its attitude errors, as large as a coast leaves, have not yet
         been renewed by any measurement (docs/filter-notes.md, "the hand-over counted as a coast's
         end").
+    consider_positions : bool
+        With ``DR`` states: carry them as *consider* states (Schmidt): their covariance
+        and cross-covariances follow the propagation and every update, but no update
+        moves them (:meth:`_update`). The filter then knows how uncertain the sensor
+        positions make its rate, attitude and rate measurement, without fitting the
+        positions to errors they do not cause (``filter.position_consider``).
     remainder_off_constraint : bool
         After each accepted body-velocity update, keep on the constraint's own
         direction the remainder's variance counted once and move the rest of the
@@ -393,6 +398,7 @@ class NavFilter:
     remainder_off_constraint: bool = False
     count_by_prior_weight: bool = False
     body_velocity_error: bool = False
+    consider_positions: bool = False
     counters: Counters = field(default_factory=Counters)
 
     def __post_init__(self) -> None:
@@ -967,7 +973,7 @@ class NavFilter:
         if nis > self.gate_q:
             self.counters.rate_rejected += 1
             return nis
-        self.x, self.P = update_correlated(self.x, self.P, y, r, h, m)
+        self.x, self.P = self._update(y, r, h, m)
         self._inject()
         self.counters.rate_updates += 1
         return nis
@@ -987,8 +993,20 @@ class NavFilter:
         h[3:, b_quad(nq)] = np.eye(nq)
         r = self.noise.feature_cov[np.ix_(idx, idx)] / max(int(n_samples), 1)
         y = mean_features[idx] - self.bias[idx]
-        self.x, self.P = kf_update(self.x, self.P, y, r, h)
+        self.x, self.P = self._update(y, r, h)
         self._inject()
+
+    def _update(
+        self, y: np.ndarray, r: np.ndarray, h: np.ndarray, m: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The Kalman update of every measurement (error state ``x``, zero before it).
+
+        filterpy's update (:func:`filters.updates.update_correlated` with noise correlated
+        with the prior as ``m``), or with :attr:`consider_positions` and ``DR`` states the
+        Schmidt update that leaves them unestimated (:func:`filters.updates.update_consider`).
+        """
+        fixed = self.layout.dr if self.consider_positions and self.layout.n_dr else None
+        return update_consider(self.x, self.P, y, r, h, m, fixed)
 
     def rate_model(
         self,
@@ -1671,7 +1689,7 @@ class NavFilter:
         nis = quadratic_form(y, s)
         if not np.isfinite(nis) or nis > (self.gate3 if gate is None else gate):
             return nis, False
-        self.x, self.P = kf_update(self.x, self.P, y, r, h)
+        self.x, self.P = self._update(y, r, h)
         self._inject()
         return nis, True
 

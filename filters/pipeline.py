@@ -582,6 +582,7 @@ class Pipeline:
             remainder_off_constraint=cfg.filter.remainder_off_constraint,
             count_by_prior_weight=cfg.filter.count_by_prior_weight,
             body_velocity_error=cfg.filter.body_velocity_error,
+            consider_positions=cfg.filter.position_consider,
         )
         nf.body_velocity_log = self.body_velocity_log
         self.nf = nf

@@ -43,6 +43,45 @@ def update_correlated(
     return xa[:n], pa[:n, :n]
 
 
+def update_consider(
+    x: np.ndarray,
+    p: np.ndarray,
+    z: np.ndarray,
+    r: np.ndarray,
+    h: np.ndarray,
+    m: np.ndarray | None,
+    fixed: slice | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`update_correlated` that leaves the states in ``fixed`` unestimated (Schmidt).
+
+    The Schmidt-Kalman ("consider") update: the states in ``fixed`` keep their value
+    and covariance, their gain rows are zero, and the covariance of every other state
+    and its cross-covariance with them follow the gain actually applied,
+    ``P+ = P - K (H P + M^T) - (P H^T + M) K^T + K S K^T`` (the general form for any
+    gain ``K`` with noise correlated with the prior as ``M``; with the optimal gain it
+    is :func:`update_correlated`'s). The measurement still counts their uncertainty:
+    ``S = H P H^T + H M + M^T H^T + R`` includes it, so a poorly known parameter
+    widens the update's uncertainty instead of being pulled to fit the data. filterpy
+    has no consider update; with ``fixed`` None this is :func:`update_correlated`.
+    """
+    if fixed is None:
+        return update_correlated(x, p, z, r, h, m)
+    ph = p @ h.T
+    if m is not None:
+        ph = ph + m
+    s = h @ ph + r
+    if m is not None:
+        hm = h @ m
+        s = s + hm.T  # h P h^T + h M + M^T h^T + R (ph already holds M)
+    s = 0.5 * (s + s.T)
+    k = np.linalg.solve(s, ph.T).T
+    k[fixed] = 0.0
+    y = z - h @ x
+    kph = k @ ph.T
+    p_new = p - kph - kph.T + k @ s @ k.T
+    return x + k @ y, 0.5 * (p_new + p_new.T)
+
+
 def quadratic_form(y: np.ndarray, s: np.ndarray) -> float:
     """``y^T S^-1 y`` for a symmetric positive definite S (closed form for 3 x 3)."""
     if y.shape[0] != 3:
