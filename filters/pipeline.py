@@ -583,6 +583,7 @@ class Pipeline:
             count_by_prior_weight=cfg.filter.count_by_prior_weight,
             body_velocity_error=cfg.filter.body_velocity_error,
             consider_positions=cfg.filter.position_consider,
+            remainder_consider=cfg.filter.remainder_consider,
         )
         nf.body_velocity_log = self.body_velocity_log
         self.nf = nf

@@ -15,6 +15,8 @@ B_QUAD     nq     bias of the solved rate-quadratic terms, rad^2/s^2
 DR         3N     residual sensor-position errors ``dr_i``, FRD, m (optional)
 AOA        1-2    angle-of-attack error, rad; with a lift law the law's offset
                   error (rad) and its ``K`` error (m) (optional)
+RB         2      the vehicle models' second-order remainders (lateral, then
+                  wind-normal), m/s: consider states, never estimated (optional)
 =========  =====  ==============================================================
 
 Why these biases: each channel's bias ``beta_i`` enters the solved features as
@@ -55,6 +57,16 @@ slope are never known exactly, and its effect grows with the load factor,
 which a random walk cannot describe). Without a law the state is ``alpha``
 itself. Without the block the model assumes zero angle of attack, which only a
 vehicle flying along its body axis keeps. Present when ``aoa_prior_sigma_deg`` > 0.
+
+Why ``RB`` (``filter.remainder_consider``, off by default): the vehicle models'
+linearisation leaves a second-order remainder (products of attitude, velocity and
+angle-of-attack errors) that stays nearly the same from one 5 Hz update to the
+next, so as white noise it would be averaged away. As a consider (Schmidt)
+state per model, stepped before each update to the variance and the correlation
+with its last value that the filter's own Gaussian errors give it, each update
+counts it once and later updates see what they share of it through the
+cross-covariances (the default instead counts its variance several times in R).
+Never estimated: nothing observes a remainder apart from the errors it is made of.
 """
 
 from __future__ import annotations
@@ -80,20 +92,24 @@ def b_quad(nq: int) -> slice:
 
 @dataclass(frozen=True)
 class StateLayout:
-    """Error-state size: ``nq`` rate-quadratic terms, ``n_dr`` position states, ``n_aoa`` (0-2)."""
+    """Error-state size: ``nq`` rate-quadratic terms, ``n_dr`` position states,
+    ``n_aoa`` (0-2) angle-of-attack states, ``n_rb`` (0 or 2) remainder states."""
 
     nq: int
     n_dr: int = 0
     n_aoa: int = 0
+    n_rb: int = 0
 
     def __post_init__(self) -> None:
         if self.n_aoa not in (0, 1, 2):
             raise ValueError(f"n_aoa must be 0, 1 or 2, got {self.n_aoa}")
+        if self.n_rb not in (0, 2):
+            raise ValueError(f"n_rb must be 0 or 2, got {self.n_rb}")
 
     @property
     def n(self) -> int:
         """Total error-state size."""
-        return N_BASE + self.nq + self.n_dr + self.n_aoa
+        return N_BASE + self.nq + self.n_dr + self.n_aoa + self.n_rb
 
     @property
     def dr(self) -> slice:
@@ -105,6 +121,12 @@ class StateLayout:
         """The angle-of-attack block (0, 1 or 2 states)."""
         start = N_BASE + self.nq + self.n_dr
         return slice(start, start + self.n_aoa)
+
+    @property
+    def rb(self) -> slice:
+        """The vehicle models' remainder block (lateral, wind-normal; 2 states or empty)."""
+        start = N_BASE + self.nq + self.n_dr + self.n_aoa
+        return slice(start, start + self.n_rb)
 
     @property
     def bias(self) -> slice:

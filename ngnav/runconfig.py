@@ -36,7 +36,8 @@ truth to separate files.
                    coast_remainder_updates, coast_after_s,
                    forecast_error_persistence, forecast_correction,
                    remainder_off_constraint, vehicle_model_rate_hz,
-                   count_by_prior_weight, body_velocity_error, position_consider
+                   count_by_prior_weight, body_velocity_error, position_consider,
+                   remainder_consider
                    (each explained in FilterSettings' docstring)
 """
 
@@ -200,6 +201,18 @@ class FilterSettings:
     error taken out of the state"). On ``uav-survey``'s five draws it left the same
     misses, each a little smaller, so the survey ships without it (docs/filter-notes.md).
 
+    ``remainder_consider`` (default false): carry the vehicle models' second-order
+    remainders as two consider states (``RB`` in ``filters.state``;
+    ``filters.ekf.NavFilter.remainder_consider``) in place of counting their variance
+    in R: each update counts the remainder once, and its correlation with the
+    remainder at the model's previous update, which the filter's own Gaussian errors
+    give (the two quadratic forms over the errors' covariance across the interval),
+    is carried in the covariance. With it, while GPS holds, the counts below,
+    ``count_by_prior_weight`` and ``remainder_off_constraint`` do not apply; through
+    coasts, the hand-over and their holds the updates keep ``coast_remainder_updates``
+    (there the Gaussian model of the remainder failed). Off in both scenarios
+    (docs/filter-notes.md, "the remainder as a consider state").
+
     ``coast_remainder_updates`` (>= 1, default 40) replaces ``remainder_updates``
     while the filter coasts: from ``coast_after_s`` (default 1 s) or five intervals
     of the GPS fixes received, whichever is longer, without an accepted GPS position until
@@ -294,6 +307,7 @@ class FilterSettings:
     count_by_prior_weight: bool = False
     body_velocity_error: bool = False
     position_consider: bool = False
+    remainder_consider: bool = False
 
     def __post_init__(self) -> None:
         if self.compensation not in COMPENSATIONS:
