@@ -1379,10 +1379,8 @@ class NavFilter:
 
     def _body_velocity_update(self, axis: int, sigma_v_mps: float) -> tuple[float, bool]:
         v_axis, h = self.body_velocity_model(self.q, self.vel, axis, self.aoa)
-        form = self.body_velocity_second_order_form(axis)
-        mq, sel, mean_shift = form
-        rem = remainder_moments(mq, self.P[np.ix_(sel, sel)])
-        rem = rem._replace(mean=rem.mean - mean_shift)
+        mq, sel, mean_shift = self.body_velocity_second_order_form(axis)
+        rem = self._form_moments(mq, sel, mean_shift)
         load_var = blend_var = 0.0  # R's angle-of-attack terms, m^2/s^2
         dv_da = 0.0  # the model's change per radian of angle of attack: -(C t_b . v)
         if axis == VERTICAL:
@@ -1578,7 +1576,10 @@ class NavFilter:
         far (joint velocity-attitude NEES far above its 6 dof on ``uav-survey``).
         ``var_att`` is ``Var`` of the ``dtheta^T A dtheta / 2`` part alone.
         """
-        mq, sel, mean_shift = self.body_velocity_second_order_form(axis)
+        return self._form_moments(*self.body_velocity_second_order_form(axis))
+
+    def _form_moments(self, mq: np.ndarray, sel: np.ndarray, mean_shift: float) -> Remainder:
+        """:func:`remainder_moments` of a form from :meth:`body_velocity_second_order_form`."""
         rem = remainder_moments(mq, self.P[np.ix_(sel, sel)])
         return rem._replace(mean=rem.mean - mean_shift)
 
