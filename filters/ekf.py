@@ -315,11 +315,14 @@ class NavFilter:
         last coasting update the count holds (s; 0 by default, the pipeline passes
         the count's own length at its 5 Hz): :meth:`current_remainder_updates`.
     handover_hold_s : float
-        How long after :meth:`initialise` the body-velocity updates count the whole
-        remainder ``coast_remainder_updates`` times, as after a coast (s, >= 0;
-        default 0). The pipeline passes the coast's hold for a configured alignment
-        (a hand-over): its attitude errors, as large as a coast leaves, have not yet
-        been renewed by any measurement (docs/filter-notes.md, "the hand-over counted as a coast's
+        How long after the vehicle models' first update since :meth:`initialise` the
+        body-velocity updates count the whole remainder ``coast_remainder_updates``
+        times, as after a coast (s, >= 0; default 0). The pipeline passes the coast's
+        hold for every alignment: a configured one (a hand-over in flight, whose first
+        update comes at once) and a static one (whose first comes in the take-off
+        roll): either way the attitude errors the models first meet, a hand-over's or
+        the configured heading's, have not yet been renewed by any measurement
+        (docs/filter-notes.md, "the hand-over counted as a coast's
         end").
     consider_positions : bool
         With ``DR`` states: carry them as *consider* states (Schmidt): their covariance
@@ -437,6 +440,8 @@ class NavFilter:
         self._rb_track: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._coast_until = -np.inf
         self._handover_until = -np.inf
+        #: Whether the hand-over's hold starts at the next body-velocity update.
+        self._handover_pending = False
         #: Filter time of each vehicle model's last accepted update, s, by axis.
         self._model_last_t: dict[int, float] = {}
         #: Whether each vehicle model's last update passed its gate, by axis.
@@ -598,7 +603,9 @@ class NavFilter:
         self.x = np.zeros(self.layout.n)
         self._rb_track = {}
         self.t_last_position_fix = self.t_s
-        self._handover_until = self.t_s + self.handover_hold_s
+        # the hold starts at the vehicle models' first update (current_remainder_updates)
+        self._handover_until = -np.inf
+        self._handover_pending = self.handover_hold_s > 0.0
         self.check_covariance("initialisation")
 
     # ------------------------------------------------------------- propagation
@@ -1515,10 +1522,17 @@ class NavFilter:
         accepted GPS position: a slow receiver's normal spacing is not a coast) and for
         ``coast_hold_s`` after it: the remainder built up in a coast lasts as long
         after it as in it. The same count, if not coasting, until ``handover_hold_s``
-        after :meth:`initialise` (``counters.handover_model_updates``). Otherwise
-        ``remainder_updates``. Called once per update: a coasting call is counted
-        (``counters.coast_model_updates``) and extends the hold.
+        after the first such call since :meth:`initialise`
+        (``counters.handover_model_updates``). Otherwise ``remainder_updates``. Called
+        once per update: a coasting call is counted (``counters.coast_model_updates``)
+        and extends the hold; the first call after :meth:`initialise` starts the
+        hand-over's.
         """
+        if self._handover_pending:
+            self._handover_pending = False
+            # less a nanosecond: the update times are sums of sample intervals, and the
+            # update a whole hold later ends it
+            self._handover_until = self.t_s + self.handover_hold_s - 1e-9
         coasting = self._coasting()
         if coasting:
             self._coast_until = self.t_s + self.coast_hold_s
@@ -1540,13 +1554,18 @@ class NavFilter:
     def counts_as_coast(self) -> bool:
         """Whether a body-velocity update now would use ``coast_remainder_updates``.
 
-        True while coasting, within ``coast_hold_s`` of the last coasting update and
-        within ``handover_hold_s`` of :meth:`initialise`: what
+        True while coasting, within ``coast_hold_s`` of the last coasting update, and
+        from :meth:`initialise` until ``handover_hold_s`` after the models' first
+        update since: what
         :meth:`current_remainder_updates` decides, without its counting (a query).
         The pipeline runs the vehicle model at 5 Hz then, and at its own rate
         otherwise (``FilterSettings.vehicle_model_rate_hz``).
         """
-        return self._coasting() or self.t_s < max(self._coast_until, self._handover_until)
+        return (
+            self._coasting()
+            or self._handover_pending
+            or self.t_s < max(self._coast_until, self._handover_until)
+        )
 
     def sideslip_second_order(self) -> Remainder:
         """:meth:`body_velocity_second_order` of the lateral axis (the sideslip model)."""

@@ -577,8 +577,10 @@ class Pipeline:
             coast_after_s=cfg.filter.coast_after_s,
             # a coast's remainder lasts its count of updates after the coast
             coast_hold_s=hold_s,
-            # a hand-over's attitude errors are a coast's: counted so for as long
-            handover_hold_s=hold_s if cfg.initial.alignment == "config" else 0.0,
+            # a hand-over's attitude errors are a coast's, and so are those the models
+            # first meet after a static alignment (the configured heading's): counted
+            # so for as long from the models' first update
+            handover_hold_s=hold_s,
             remainder_off_constraint=cfg.filter.remainder_off_constraint,
             count_by_prior_weight=cfg.filter.count_by_prior_weight,
             body_velocity_error=cfg.filter.body_velocity_error,

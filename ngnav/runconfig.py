@@ -169,8 +169,9 @@ class FilterSettings:
     measured with (docs/filter-notes.md, "the sideslip remainder"); ``tactical`` counts the
     attitude part 7 times, its measured persistence after the hand-over, which
     counts the whole remainder ``coast_remainder_updates`` times for the coast's
-    hold (a configured alignment; docs/filter-notes.md, "the hand-over counted as a coast's
-    end"). ``ngnav remainder`` measures what a flight's remainders actually need,
+    hold from the vehicle models' first update (after a configured alignment at once,
+    after a static one in the take-off roll; docs/filter-notes.md, "the hand-over counted
+    as a coast's end"). ``ngnav remainder`` measures what a flight's remainders actually need,
     against its truth.
 
     ``forecast_error_persistence`` (>= 0, default 2): with a forecast compensation

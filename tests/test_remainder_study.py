@@ -249,8 +249,8 @@ def test_integrated_autocorrelation_sees_a_slow_part_the_lag1_correlation_misses
 def test_remainder_counts_are_settings_that_reach_the_update():
     """``filter.remainder_updates`` and ``filter.attitude_remainder_updates`` set the
     R of every sideslip update (``sigma^2 + remainder_variance``), checked on the
-    first update after the hand-over's hold (8 s, during which both count the
-    coast's 40), where both runs are still in the same state; with
+    first update after the hand-over's hold (8 s from the vehicle models' first update,
+    during which both count the coast's 40), where both runs are still in the same state; with
     ``filter.count_by_prior_weight`` off, as configured."""
     with pytest.raises(ValueError, match=r"filter\.remainder_updates must be a number in"):
         FilterSettings(remainder_updates=0.5)
@@ -276,9 +276,11 @@ def test_remainder_counts_are_settings_that_reach_the_update():
         sim = simulate_flight(scn, 0)
         log = []
         run_filter(sim.samples, sim.fixes, sim.config, body_velocity_log=log)
-        # the first update after the hand-over's hold, before which the count is the hold's
+        # the first update after the hand-over's hold (from the models' first update),
+        # before which the count is the hold's
         hold_s = scn.filter.coast_remainder_updates / 5.0
-        firsts[n_att] = next(r for r in log if r.axis == LATERAL and r.t_s >= hold_s)
+        t0 = min(r.t_s for r in log)
+        firsts[n_att] = next(r for r in log if r.axis == LATERAL and r.t_s >= t0 + hold_s - 1e-6)
     a, b = firsts[40.0], firsts[7.0]
     assert a.t_s == b.t_s and a.remainder == b.remainder
     speed = np.hypot(*a.vel_ned_mps[:2])
@@ -380,9 +382,10 @@ def test_an_outage_switches_the_count_for_its_length_and_the_hold():
 
 def test_a_handover_counts_the_remainder_as_a_coasts_end():
     """After :meth:`NavFilter.initialise` the body-velocity updates count the whole
-    remainder ``coast_remainder_updates`` times for ``handover_hold_s`` (the pipeline's
-    configured alignment), then ``remainder_updates``; the attitude part is never
-    counted fewer times than the whole; without a hold (a static alignment) none."""
+    remainder ``coast_remainder_updates`` times for ``handover_hold_s`` from the models'
+    first update (at once after a hand-over, later after a static alignment), then
+    ``remainder_updates``; the attitude part is never counted fewer times than the
+    whole; without a hold none."""
     nf, _, _ = level_filter()
     assert nf.handover_hold_s == 0.0
     nf.vel = np.array([20.0, 0.0, 0.0])
@@ -404,6 +407,22 @@ def test_a_handover_counts_the_remainder_as_a_coasts_end():
         att = max(7.0, n) - n
         assert rec.r_m2ps2 == pytest.approx(sigma2 + n * rem.var + att * rem.var_att, rel=1e-12)
     assert nf.counters.handover_model_updates == 2 and nf.counters.coast_model_updates == 0
+    # a static alignment: the models' first update comes later (the take-off roll), and
+    # the hold runs from it, not from the alignment
+    nf.initialise(
+        20.0, np.zeros(3), nf.vel, nf.q, np.zeros(3), np.ones(3), np.ones(3), np.ones(3), 0.01
+    )
+    nf.t_s = nf.t_last_position_fix = 24.0
+    assert nf.counts_as_coast()  # the hold is still to come: the models run at 5 Hz
+    for t, n in ((25.0, COAST_REMAINDER_UPDATES), (32.9, COAST_REMAINDER_UPDATES), (33.0, 4.0)):
+        nf.t_s = nf.t_last_position_fix = t
+        nf.update_sideslip(np.deg2rad(1e-3), 5.0)
+        rem = nf.body_velocity_log[-1].remainder
+        att = max(7.0, n) - n
+        got = nf.body_velocity_log[-1].r_m2ps2
+        assert got == pytest.approx(sigma2 + n * rem.var + att * rem.var_att, rel=1e-12)
+    assert not nf.counts_as_coast()
+    assert nf.counters.handover_model_updates == 4
     assert remainder_variance(rem, 40.0, 7.0) == pytest.approx(40.0 * rem.var)
     assert remainder_variance(rem, 4.0, 7.0) == pytest.approx(4.0 * rem.var + 3.0 * rem.var_att)
     with pytest.raises(ValueError, match="handover_hold_s must be a finite number"):
