@@ -36,7 +36,7 @@ import numpy as np
 from filterpy.kalman import predict as kf_predict
 from scipy.stats import chi2
 
-from filters.state import ATT, B_F, B_WDOT, N_NAV, POS, RATE, VEL, StateLayout, b_quad
+from filters.state import ATT, N_NAV, POS, RATE, VEL, StateLayout
 from filters.updates import quadratic_form, refresh_markov_state, update_consider
 from filters.vehicle_model import (
     ATTITUDE_REMAINDER_UPDATES,
@@ -209,6 +209,16 @@ class FilterNoise:
         0.5). A block's rate measurement then shares noise with the propagation
         that led to it; :meth:`NavFilter.update_rate` carries that cross-covariance.
         None treats them as independent.
+    bias_effect : array (k, k), optional
+        What an error of the bias states (true less estimated, the raw feature biases
+        ``S b``) leaves in the compensated features the filter propagates and
+        measures with. A forecast compensation feeds its own history back, and that
+        history holds the block means less the bias *estimates*: the estimates'
+        error comes back through the loop like the noise does, and over many blocks
+        the features carry ``T (S b - b_hat)`` with ``T = [[A, 0], [-E_q A, I]]``,
+        ``A = (I + E_6)^-1`` (:func:`filters.pipeline.filter_noise`). The transition's
+        bias columns, the rate measurement's and the lift law's force-bias term use
+        it. None: the identity (no forecast feedback).
     """
 
     feature_cov: np.ndarray
@@ -216,6 +226,7 @@ class FilterNoise:
     bias_rw_cov: np.ndarray
     position_sigma_m: float = 0.0
     quad_cross_cov: np.ndarray | None = None
+    bias_effect: np.ndarray | None = None
 
 
 @dataclass
@@ -479,10 +490,10 @@ class NavFilter:
         self._consider_index = np.array(idx, dtype=int) if idx else None
         n = self.layout.n
         k = 6 + self.layout.nq
-        for name in ("feature_cov", "bias_prior_cov", "bias_rw_cov"):
+        for name in ("feature_cov", "bias_prior_cov", "bias_rw_cov", "bias_effect"):
             m = getattr(self.noise, name)
-            if m.shape != (k, k):
-                raise ValueError(f"noise.{name} must be ({k}, {k}), got {m.shape}")
+            if m is not None and np.shape(m) != (k, k):
+                raise ValueError(f"noise.{name} must be ({k}, {k}), got {np.shape(m)}")
         cq = self.noise.quad_cross_cov
         if cq is not None and np.shape(cq) != (6, self.layout.nq):
             raise ValueError(
@@ -526,16 +537,20 @@ class NavFilter:
         self.last_rate_innovation = np.zeros(self.layout.nq)
         self._last_wdot = np.zeros(3)
         self._last_f = np.zeros(3)
+        # what a bias error leaves in the compensated [wdot, f, quad] (FilterNoise.bias_effect)
+        te = self.noise.bias_effect
+        te = np.eye(k) if te is None else np.array(te, dtype=float)
+        self._bias_effect_f = te[3:6].copy()  # into the force (FRD), per block rotated to NED
         # the constant part of the error dynamics, copied and filled per block: only
         # the navigation rows (position, velocity, attitude, rate) of F are non-zero
         # (biases and the angle-of-attack offset walk, DR and K are constants)
         fc = np.zeros((N_NAV, n))
         fc[POS, VEL] = np.eye(3)
-        fc[RATE, B_WDOT] = -np.eye(3)
+        fc[RATE, self.layout.bias] = -te[0:3]
         self._fc_base = fc
         # the rate measurement's Jacobian without its rate columns (filled per block)
         h_rate = np.zeros((self.layout.nq, n))
-        h_rate[:, b_quad(self.layout.nq)] = np.eye(self.layout.nq)
+        h_rate[:, self.layout.bias] = te[6:]
         self._h_rate_base = h_rate
         self._t12 = np.eye(12)
         self._eye12 = np.eye(N_NAV)
@@ -870,7 +885,7 @@ class NavFilter:
         t = k * dt
         fc = self._fc_base.copy()
         fc[VEL, ATT] = -skew(f_n)
-        fc[VEL, B_F] = -c
+        fc[VEL, self.layout.bias] = -(c @ self._bias_effect_f)
         fc[ATT, RATE] = c
         if self.layout.n_dr:
             dr = self.layout.dr
@@ -1020,21 +1035,31 @@ class NavFilter:
         self.counters.rate_updates += 1
         return nis
 
-    def update_static_biases(self, mean_features: np.ndarray, n_samples: int) -> None:
+    def update_static_biases(
+        self, mean_features: np.ndarray, n_samples: int, effect: np.ndarray | None = None
+    ) -> None:
         """Static alignment: at rest ``wdot = 0`` and ``w = 0``, so the mean solved
         angular acceleration and rate products over ``n_samples`` samples measure
         their biases directly (noise ``feature_cov / n``). Through the channel-bias
         correlation this also informs the force bias. Without it a gyro-free
         array leaves the static alignment with its yaw-acceleration bias at the
         turn-on prior, and a single-axis yaw rate is invisible to the products.
+
+        ``effect`` (k, k), optional, is what the bias states leave in
+        ``mean_features`` (the identity by default; the pipeline's static mean has the
+        mounting term at rest taken out with the biased force, which leaves
+        ``M = I - E_f (I + E_ff)^-1`` of the force bias in the other features).
         """
         nq = self.layout.nq
+        k = 6 + nq
         idx = np.r_[0:3, 6 : 6 + nq]
+        m = np.eye(k) if effect is None else np.asarray(effect, dtype=float)
+        if m.shape != (k, k):
+            raise ValueError(f"effect must be ({k}, {k}), got {m.shape}")
         h = np.zeros((idx.size, self.layout.n))
-        h[0:3, B_WDOT] = np.eye(3)
-        h[3:, b_quad(nq)] = np.eye(nq)
+        h[:, self.layout.bias] = m[idx]
         r = self.noise.feature_cov[np.ix_(idx, idx)] / max(int(n_samples), 1)
-        y = mean_features[idx] - self.bias[idx]
+        y = mean_features[idx] - m[idx] @ self.bias
         self.x, self.P = self._update(y, r, h)
         self._inject()
 
@@ -1199,7 +1224,8 @@ class NavFilter:
 
         ``w [1, u]`` for the law's offset and ``K``; through ``u = n_w / V^2``
         (:meth:`set_load`), ``-2 w K u v^T / V^2`` for the velocity and
-        ``-w K [sin a, 0, -cos a] / V^2`` for the specific-force bias; through the
+        ``-w K [sin a, 0, -cos a] T_f / V^2`` for the biases (``T_f`` the force rows of
+        ``noise.bias_effect``); through the
         lift-off blend ``w(V)``, ``w'(V) (alpha_b + K u) v^T / V``. Zero without the
         ``AOA`` state. The ``u`` here is the load :data:`LIFT_JACOBIAN_LAG_BLOCKS`
         blocks back, whose noise is independent of the predicted angle's (equal to the
@@ -1221,7 +1247,7 @@ class NavFilter:
         if self.aoa_k > 0.0:
             wk = self._lift_w * self.aoa_k / speed2
             j[VEL] += -2.0 * wk * self._lift_u_jac * vel_ned_mps
-            j[B_F] += -wk * self._lift_axis
+            j[self.layout.bias] += -wk * (self._lift_axis @ self._bias_effect_f)
         return j
 
     @property

@@ -29,7 +29,12 @@ the rate measurement, where they would read as a false rate of up to
 observable whenever the rate is held by the integrated angular acceleration
 and the GPS-held attitude. So all nine are carried, as the 9-D image of the
 channel biases, with a prior and random walk mapped through ``S`` (so the
-three blocks start correlated exactly as the channel biases make them).
+three blocks start correlated exactly as the channel biases make them). With a
+forecast compensation the features are compensated with a forecast made from
+their own history less the bias *estimates*, so a bias error ``S beta - b_hat``
+shows in them as ``T (S beta - b_hat)`` (``FilterNoise.bias_effect``): the
+states stay ``S beta`` and the transition, the rate measurement, the static
+alignment and the lift law read them through ``T``.
 
 Why ``DR``: the calibration (multi-position, at rest) finds the sensing axes
 but cannot see where each sensitive element sits; what is left after the

@@ -123,3 +123,53 @@ def test_forecast_feedback_scales_the_long_run_noise_by_the_closed_loop():
     raw = statistic(sigma**2 * np.eye(6))
     assert lo < closed < hi
     assert raw < lo
+
+
+def test_forecast_feedback_returns_the_bias_estimates_error():
+    """What the filter's bias states do to the features (``FilterNoise.bias_effect``).
+
+    The features carry a bias ``b``; the filter subtracts its estimate ``b_hat``
+    and the forecast history holds the compensated means less ``b_hat``. Once the
+    loop settles the compensated features less ``b_hat`` are off by
+    ``A (b - b_hat)``, ``A = (I + E)^-1``: a change of the estimate moves the
+    features by ``A`` of it. The earlier model (``A b - b_hat``, the estimate
+    outside the loop) must fail, and ``filter_noise`` must give this ``A``.
+    """
+    from types import SimpleNamespace
+
+    from filters.pipeline import filter_noise
+
+    rng = np.random.default_rng(12)
+    e6 = 0.07 * np.eye(6) + 0.03 * rng.standard_normal((6, 6))
+    a = np.linalg.inv(np.eye(6) + e6)
+    phi = np.array([0.3, -0.2, 0.1, 0.5, -0.4, 9.0])
+    b = np.array([0.08, -0.05, 0.03, 0.007, -0.009, 0.004])
+    b_hat = np.array([0.05, 0.01, -0.02, 0.002, 0.003, -0.006])
+    window = 5
+    gp = GreyPredictor(window=window, shift=np.full(6, 20.0))
+    hist = np.tile(phi, (window, 1))
+    for k in range(200):
+        forecast, _ = gp.forecast(hist[-window:], k)
+        comp = phi + e6 @ phi + b - e6 @ forecast
+        hist = np.vstack([hist[1:], comp - b_hat])
+    err = comp - b_hat - phi
+    np.testing.assert_allclose(err, a @ (b - b_hat), rtol=0, atol=1e-9)
+    assert np.max(np.abs(err - (a @ b - b_hat))) > 1e-3
+
+    # the pipeline's noise model: T = [[A, 0], [-E_q A, I]] on the raw biases
+    # filter_noise reads these three channel-model fields of a RunConfig
+    cfg = SimpleNamespace(
+        turn_on_bias_mps2=np.full(9, 0.0098),
+        bias_rw_mps2_rts=np.full(9, 1e-5),
+        position_sigma_m=0.0,
+    )
+    solver = ArraySolver(nine_accelerometer_cube(0.1))
+    k = solver.solve_matrix.shape[0]
+    feedback = 0.05 * rng.standard_normal((k, 6))
+    noise = filter_noise(solver, cfg, feedback)
+    a_k = np.linalg.inv(np.eye(6) + feedback[0:6])
+    np.testing.assert_allclose(noise.bias_effect[0:6, 0:6], a_k, atol=1e-12)
+    np.testing.assert_allclose(noise.bias_effect[6:, 0:6], -feedback[6:] @ a_k, atol=1e-12)
+    np.testing.assert_allclose(noise.bias_effect[:, 6:], np.eye(k)[:, 6:], atol=1e-12)
+    raw = solver.solve_matrix @ np.diag(np.maximum(cfg.turn_on_bias_mps2, 1e-6) ** 2)
+    np.testing.assert_allclose(noise.bias_prior_cov, raw @ solver.solve_matrix.T, rtol=1e-12)
