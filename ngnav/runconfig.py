@@ -61,7 +61,10 @@ class InitialSettings:
     With ``alignment = "config"`` (a hand-over: the vehicle is already moving) the
     filter starts at ``roll_deg``/``pitch_deg``/``yaw_deg`` and at the body rate
     ``rate_dps`` (FRD, deg/s; the launcher's reading), each with its 1-sigma; a
-    static alignment starts at rest (``rate_dps`` unused).
+    static alignment starts at rest (``rate_dps`` unused): at zero rate, with
+    ``rate_sigma_dps`` the rest's residual rate (a still vehicle turns in the NED
+    frame only with the Earth, 0.0042 deg/s, which the filter leaves out; a running
+    engine's rocking is more).
     """
 
     alignment: str = "static"
