@@ -641,7 +641,11 @@ class Pipeline:
                 f_of_bias[:, 3:6] = np.linalg.inv(np.eye(3) + se[3:6, 3:6])
                 static_effect -= se[:, 3:6] @ f_of_bias
             n_avg = int(np.count_nonzero(ok))
-            tilt_noise = np.sqrt(noise.feature_cov[3, 3] / n_avg) / G0_MPS2
+            # the static mean has no forecast loop: its noise is the raw solve's per
+            # sample (not the propagation's, mapped through the loop), / n
+            sample_cov = self.solver.covariance()
+            f_noise = f_of_bias[:, 3:6] @ sample_cov[3:6, 3:6] @ f_of_bias[:, 3:6].T / n_avg
+            tilt_noise = np.sqrt(0.5 * (f_noise[0, 0] + f_noise[1, 1])) / G0_MPS2
             att_sigma = np.array([tilt_noise, tilt_noise, np.deg2rad(ini.heading_sigma_deg)])
         else:
             roll0, pitch0 = np.deg2rad(ini.roll_deg), np.deg2rad(ini.pitch_deg)
@@ -674,11 +678,12 @@ class Pipeline:
             p = nf.P
             p[6:8, :] = j @ p
             p[:, 6:8] = p[6:8, :].T
-            p[6:8, 6:8] = j @ nf.P @ j.T + np.eye(2) * tilt_noise**2
+            jc = jm @ c0
+            p[6:8, 6:8] = j @ nf.P @ j.T + jc @ f_noise @ jc.T
             p[6:8, 8] = 0.0
             p[8, 6:8] = 0.0
             nf.P = p
-            nf.update_static_biases(static_mean, n_avg, static_effect)
+            nf.update_static_biases(static_mean, n_avg, static_effect, sample_cov)
             nf.check_covariance("static alignment")
         self.last_gps_t = f_t
 

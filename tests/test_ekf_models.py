@@ -5,6 +5,7 @@ import pytest
 from filterpy.kalman import update as kf_update
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.stats import chi2
 
 from filters.ekf import FilterNoise, NavFilter
 from filters.state import ATT, B_F, RATE, VEL
@@ -276,8 +277,6 @@ def test_lift_law_states_stay_centred_under_a_noisy_load():
     1.008 / 1.007) the mean z of each state is within 4 standard errors of 0, and its sum
     of z^2 inside the two-sided 0.998 chi-square interval: the load's noise, which the
     filter is told, is then all the update's noise, and the states' sigmas are right."""
-    from scipy.stats import chi2
-
     runs = 200
     z = np.array([_noisy_load_run(s, 200, 0.5) for s in range(runs)])
     se = z.std(axis=0, ddof=1) / np.sqrt(runs)
@@ -1081,3 +1080,52 @@ def test_vehicle_model_rate_holds_5_hz_over_the_hand_over_and_its_own_rate_after
         times["5"][times["5"] <= times["5"][0] + hold_s - 0.1],
         times["1"][times["1"] <= times["1"][0] + hold_s - 0.1],
     )
+
+
+def _static_alignment_nees(use_sample_cov: bool, draws: int = 400) -> float:
+    """Mean NEES (9 dof) of the bias states after :meth:`NavFilter.update_static_biases`,
+    over ``draws`` biases drawn from the prior and static means drawn with the raw
+    solve's noise through the static effect ``M``, while the filter's ``feature_cov``
+    is a loop-mapped ``T cov T^T`` (as :func:`filters.pipeline.filter_noise` builds it)."""
+    layout = nine_accelerometer_cube(0.1)
+    solver = ArraySolver(layout, np.full(9, 1e-3))
+    raw = solver.covariance()
+    k = raw.shape[0]
+    rng = np.random.default_rng(11)
+    # a compensation with a 20 % angular-acceleration gain makes the loop's map visible
+    e6 = np.zeros((k, 6))
+    e6[0:3, 0:3] = 0.2 * np.eye(3)
+    e6[0:3, 3:6] = 0.05 * rng.normal(size=(3, 3))
+    e6[3:6, 3:6] = 0.01 * np.eye(3)
+    e6[6:, 0:6] = 0.02 * rng.normal(size=(k - 6, 6))
+    t = np.eye(k)
+    t[0:6, 0:6] = np.linalg.inv(np.eye(6) + e6[0:6])
+    mapped = t @ raw @ t.T
+    mapped[6:, 6:] = raw[6:, 6:]
+    # the static mean's effect: the force bias taken out with the biased force
+    m = np.eye(k)
+    m[:, 3:6] -= e6[:, 3:6] @ np.linalg.inv(np.eye(3) + e6[3:6, 3:6])
+    prior = raw * 4.0
+    n = 500
+    total = 0.0
+    for _ in range(draws):
+        nf = NavFilter(FilterNoise(mapped, prior, prior * 1e-9), PAIRS, np.zeros(3))
+        initialise_level(nf)
+        b = rng.multivariate_normal(np.zeros(k), prior)
+        mean = m @ (b + rng.multivariate_normal(np.zeros(k), raw / n))
+        nf.update_static_biases(mean, n, m, raw if use_sample_cov else None)
+        e = b - nf.bias
+        pb = nf.P[nf.layout.bias, nf.layout.bias]
+        total += float(e @ np.linalg.solve(pb, e))
+    return total / draws
+
+
+def test_static_alignment_reads_its_mean_with_the_raw_solves_noise():
+    """The static mean has no forecast loop: with the raw solve's per-sample covariance
+    through ``M`` the bias states' NEES is chi-square(9) over 400 draws (99.9 % bounds);
+    read with the loop-mapped ``feature_cov`` (its angular acceleration 1.2^-2 of the raw
+    variance here) they are over-sure and fail the upper bound."""
+    draws = 400
+    lo, hi = (float(chi2.ppf(q, 9 * draws) / draws) for q in (0.0005, 0.9995))
+    assert lo <= _static_alignment_nees(True, draws) <= hi
+    assert _static_alignment_nees(False, draws) > hi
