@@ -621,18 +621,9 @@ class Pipeline:
             if not np.any(ok):
                 raise ValueError("no valid array sample in the static alignment period")
             f_mean = sa[span][ok].mean(axis=0)
-            if se is not None:
-                phi = np.zeros(12)
-                for _ in range(3):
-                    phi[3:6] = f_mean[3:6] - (se @ phi)[3:6]
-                f_b = phi[3:6]
-            else:
-                f_b = f_mean[3:6]
-            roll0, pitch0 = _static_tilt(f_b)
-            # at rest the angular-acceleration and rate-product means are their biases
-            static_mean = f_mean - (se @ phi if se is not None else 0.0)
-            # ...taken out with the biased force: the force bias b_f leaves
-            # (I + E_ff)^-1 b_f in f_b and -E_f (I + E_ff)^-1 b_f in the others
+            # at rest the mounting term is E_ff f: the force is (I + E_ff)^-1 of the
+            # mean, so the force bias b_f leaves (I + E_ff)^-1 b_f in f_b and
+            # -E_f (I + E_ff)^-1 b_f in the others
             k_feat = self._k
             f_of_bias = np.zeros((3, k_feat))  # f_b's error per bias error (the tilt's)
             f_of_bias[:, 3:6] = np.eye(3)
@@ -640,6 +631,11 @@ class Pipeline:
             if se is not None:
                 f_of_bias[:, 3:6] = np.linalg.inv(np.eye(3) + se[3:6, 3:6])
                 static_effect -= se[:, 3:6] @ f_of_bias
+            f_b = f_of_bias[:, 3:6] @ f_mean[3:6]
+            roll0, pitch0 = _static_tilt(f_b)
+            # at rest the angular-acceleration and rate-product means are their biases,
+            # the mounting term taken out
+            static_mean = f_mean - (se[:, 3:6] @ f_b if se is not None else 0.0)
             n_avg = int(np.count_nonzero(ok))
             # the static mean has no forecast loop: its noise is the raw solve's per
             # sample (not the propagation's, mapped through the loop), / n
