@@ -160,6 +160,20 @@ BODY_INJECTION_MAX_CURVATURE_MPS = 0.05
 BODY_FRAME_MAX_CURVATURE_MPS = 0.1
 
 
+def static_mean_walk_s(dt_s: float, n_samples: int) -> float:
+    """The weight (s) of a random walk's spread between its last sample and its mean.
+
+    For ``n_samples`` samples ``dt_s`` apart of a walk with spectral density ``q``
+    (per second), ``b_last - mean(b)`` has variance ``q * walk_s`` with
+    ``walk_s = dt_s (n - 1)(2 n - 1) / (6 n)``: a third of the span for many samples,
+    zero for one. :meth:`NavFilter.update_static_biases` reads its mean with it.
+    """
+    n = int(n_samples)
+    if n < 1 or not dt_s >= 0.0:
+        raise ValueError(f"need n_samples >= 1 and dt_s >= 0, got {n_samples}, {dt_s}")
+    return float(dt_s) * (n - 1) * (2 * n - 1) / (6.0 * n)
+
+
 class CovarianceError(RuntimeError):
     """The covariance stopped being symmetric positive definite.
 
@@ -1041,6 +1055,7 @@ class NavFilter:
         n_samples: int,
         effect: np.ndarray | None = None,
         sample_cov: np.ndarray | None = None,
+        walk_s: float = 0.0,
     ) -> None:
         """Static alignment: at rest ``wdot = 0`` and ``w = 0``, so the mean solved
         angular acceleration and rate products over ``n_samples`` samples measure
@@ -1060,7 +1075,15 @@ class NavFilter:
         as the biases are: ``M cov M^T / n``. ``noise.feature_cov`` is the
         propagation's, mapped through the loop (``T``), about 13 % smaller in variance
         on the angular acceleration with ``uav-survey``'s 6 mm outward offset.
+
+        ``walk_s`` (s, >= 0, default 0) weights the biases' random walk: the states
+        are the biases at the mean's last sample, which differ from their mean over
+        the span by a walk of covariance ``noise.bias_rw_cov * walk_s``, read through
+        ``effect`` as the noise is (:func:`static_mean_walk_s`: about a third of the
+        span; 13 % of the white noise's variance over ``uav-survey``'s 5 s).
         """
+        if not (np.isfinite(walk_s) and walk_s >= 0.0):
+            raise ValueError(f"walk_s must be finite and >= 0, got {walk_s}")
         nq = self.layout.nq
         k = 6 + nq
         idx = np.r_[0:3, 6 : 6 + nq]
@@ -1074,6 +1097,8 @@ class NavFilter:
         else:
             mi = m[idx]
             r = mi @ np.asarray(sample_cov, dtype=float) @ mi.T / max(int(n_samples), 1)
+        if walk_s > 0.0:
+            r = r + m[idx] @ self.noise.bias_rw_cov @ m[idx].T * walk_s
         y = mean_features[idx] - m[idx] @ self.bias
         self.x, self.P = self._update(y, r, h)
         self._inject()

@@ -28,7 +28,13 @@ import numpy as np
 from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 
-from filters.ekf import CovarianceError, FilterNoise, LostTrackError, NavFilter
+from filters.ekf import (
+    CovarianceError,
+    FilterNoise,
+    LostTrackError,
+    NavFilter,
+    static_mean_walk_s,
+)
 from filters.state import ATT, POS, RATE, VEL
 from filters.updates import update_correlated
 from filters.vehicle_model import LATERAL, VERTICAL, BodyVelocityRecord
@@ -640,7 +646,11 @@ class Pipeline:
             # the static mean has no forecast loop: its noise is the raw solve's per
             # sample (not the propagation's, mapped through the loop), / n
             sample_cov = self.solver.covariance()
-            f_noise = f_of_bias[:, 3:6] @ sample_cov[3:6, 3:6] @ f_of_bias[:, 3:6].T / n_avg
+            # the states are the biases at the start, which the mean's random walk
+            # spreads from (the span's samples, the invalid ones too)
+            walk_s = static_mean_walk_s(dt, i_start + 1)
+            f_cov = sample_cov[3:6, 3:6] / n_avg + nf.noise.bias_rw_cov[3:6, 3:6] * walk_s
+            f_noise = f_of_bias[:, 3:6] @ f_cov @ f_of_bias[:, 3:6].T
             tilt_noise = np.sqrt(0.5 * (f_noise[0, 0] + f_noise[1, 1])) / G0_MPS2
             att_sigma = np.array([tilt_noise, tilt_noise, np.deg2rad(ini.heading_sigma_deg)])
         else:
@@ -679,7 +689,7 @@ class Pipeline:
             p[6:8, 8] = 0.0
             p[8, 6:8] = 0.0
             nf.P = p
-            nf.update_static_biases(static_mean, n_avg, static_effect, sample_cov)
+            nf.update_static_biases(static_mean, n_avg, static_effect, sample_cov, walk_s)
             nf.check_covariance("static alignment")
         self.last_gps_t = f_t
 

@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import chi2
 
-from filters.ekf import FilterNoise, NavFilter
+from filters.ekf import FilterNoise, NavFilter, static_mean_walk_s
 from filters.state import ATT, B_F, RATE, VEL
 from filters.vehicle_model import (
     ATTITUDE_REMAINDER_UPDATES,
@@ -1082,11 +1082,17 @@ def test_vehicle_model_rate_holds_5_hz_over_the_hand_over_and_its_own_rate_after
     )
 
 
-def _static_alignment_nees(use_sample_cov: bool, draws: int = 400) -> float:
+def _static_alignment_nees(
+    use_sample_cov: bool, draws: int = 400, walk: bool = False, read_walk: bool = False
+) -> float:
     """Mean NEES (9 dof) of the bias states after :meth:`NavFilter.update_static_biases`,
     over ``draws`` biases drawn from the prior and static means drawn with the raw
     solve's noise through the static effect ``M``, while the filter's ``feature_cov``
-    is a loop-mapped ``T cov T^T`` (as :func:`filters.pipeline.filter_noise` builds it)."""
+    is a loop-mapped ``T cov T^T`` (as :func:`filters.pipeline.filter_noise` builds it).
+
+    With ``walk`` the biases walk over the mean's samples (spectral density chosen so
+    that the walk's spread from its mean equals the white noise of the mean) and the
+    states are the last sample's; ``read_walk`` passes the walk's weight."""
     layout = nine_accelerometer_cube(0.1)
     solver = ArraySolver(layout, np.full(9, 1e-3))
     raw = solver.covariance()
@@ -1107,13 +1113,23 @@ def _static_alignment_nees(use_sample_cov: bool, draws: int = 400) -> float:
     m[:, 3:6] -= e6[:, 3:6] @ np.linalg.inv(np.eye(3) + e6[3:6, 3:6])
     prior = raw * 4.0
     n = 500
+    dt = 1e-3
+    walk_s = static_mean_walk_s(dt, n)
+    rw = raw / n / walk_s if walk else prior * 1e-9
     total = 0.0
     for _ in range(draws):
-        nf = NavFilter(FilterNoise(mapped, prior, prior * 1e-9), PAIRS, np.zeros(3))
+        nf = NavFilter(FilterNoise(mapped, prior, rw), PAIRS, np.zeros(3))
         initialise_level(nf)
         b = rng.multivariate_normal(np.zeros(k), prior)
-        mean = m @ (b + rng.multivariate_normal(np.zeros(k), raw / n))
-        nf.update_static_biases(mean, n, m, raw if use_sample_cov else None)
+        b_mean = b
+        if walk:
+            steps = rng.multivariate_normal(np.zeros(k), rw * dt, n - 1)
+            path = b + np.vstack([np.zeros(k), np.cumsum(steps, axis=0)])
+            b, b_mean = path[-1], path.mean(axis=0)
+        mean = m @ (b_mean + rng.multivariate_normal(np.zeros(k), raw / n))
+        nf.update_static_biases(
+            mean, n, m, raw if use_sample_cov else None, walk_s if read_walk else 0.0
+        )
         e = b - nf.bias
         pb = nf.P[nf.layout.bias, nf.layout.bias]
         total += float(e @ np.linalg.solve(pb, e))
@@ -1129,3 +1145,24 @@ def test_static_alignment_reads_its_mean_with_the_raw_solves_noise():
     lo, hi = (float(chi2.ppf(q, 9 * draws) / draws) for q in (0.0005, 0.9995))
     assert lo <= _static_alignment_nees(True, draws) <= hi
     assert _static_alignment_nees(False, draws) > hi
+
+
+def test_static_mean_walk_weight_is_the_walks_spread_from_its_mean():
+    """``b_last - mean(b)`` of a discrete walk: ``sum_j (j / n) w_j``, exactly."""
+    n, dt = 7, 0.01
+    want = dt * sum((j / n) ** 2 for j in range(1, n))
+    assert static_mean_walk_s(dt, n) == pytest.approx(want, rel=1e-12)
+    assert static_mean_walk_s(dt, 1) == 0.0
+    assert static_mean_walk_s(1e-3, 5001) == pytest.approx(5.0 / 3.0, rel=1e-3)
+    with pytest.raises(ValueError, match="n_samples"):
+        static_mean_walk_s(dt, 0)
+
+
+def test_static_alignment_reads_the_biases_walk_over_its_mean():
+    """The states are the biases at the mean's last sample: with the walk's spread as
+    large as the mean's noise, reading it (``walk_s``) gives chi-square(9) over 400 draws
+    (99.9 % bounds), leaving it out is over-sure and fails the upper bound."""
+    draws = 400
+    lo, hi = (float(chi2.ppf(q, 9 * draws) / draws) for q in (0.0005, 0.9995))
+    assert lo <= _static_alignment_nees(True, draws, walk=True, read_walk=True) <= hi
+    assert _static_alignment_nees(True, draws, walk=True) > hi
