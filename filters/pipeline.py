@@ -712,19 +712,29 @@ class Pipeline:
         seed_block = sa[lo : i_start + 1]
         seed_ok = ~invalid[lo : i_start + 1]
         seed_mean = seed_block[seed_ok].mean(axis=0) if np.any(seed_ok) else np.zeros(k_feat)
+        # the seed's motion [wdot, f]: its raw features less the bias estimates hold the
+        # mounting term too, (I + E_6) of it plus E of the rate's quadratics, so invert
+        # that (without it the first forecasts held E f, about an axis error times g
+        # over the arm on the angular acceleration, and their error opened the
+        # forecast-error noise at every start)
+        seed_motion = seed_mean[0:6] - nf.bias[0:6]
+        if se is not None:
+            seed_motion = np.linalg.solve(
+                np.eye(6) + se[0:6, 0:6], seed_motion - se[0:6, 6:12] @ rate_quadratics(nf.w)
+            )
         if nf.layout.n_aoa and np.any(seed_ok):
             # the lift law needs a load before the first block: the seed's (without it
             # the first epoch's angle of attack was the law's offset alone, 2.5-3.5 deg
             # off on tactical at 1 g and 60 m/s)
             nf.set_load(
-                seed_mean[3:6] - nf.bias[3:6],
+                seed_motion[3:6],
                 load_cov=nf.noise.feature_cov[3:6, 3:6] / int(np.count_nonzero(seed_ok)),
             )
         self._record()
         self._hist = np.empty((window + 1024, 9))
         self._h_n = window  # rows used
         # the forecast history holds motion: block means less the current bias estimates
-        self._hist[:window] = np.concatenate([nf.w, seed_mean[0:6] - nf.bias[0:6]])
+        self._hist[:window] = np.concatenate([nf.w, seed_motion])
         self._last_mean = seed_mean.copy()
         first_row = sa[i_start] if not invalid[i_start] else seed_mean
         if se is not None:

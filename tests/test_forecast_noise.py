@@ -106,6 +106,41 @@ def test_forecast_error_at_rest_is_its_noise_floor():
     assert np.all((lo < ratio) & (ratio < hi)), ratio
 
 
+@pytest.mark.parametrize(
+    ("scenario", "sets", "t_end_s"),
+    [("static", [], 6.5), ("tactical", ["run.rate_hz=200"], 1.5)],
+)
+def test_the_first_forecasts_errors_are_noise(scenario, sets, t_end_s):
+    """The forecast's history starts from the seed block's motion, its mounting term
+    taken out: the first ten blocks' forecast errors are noise, after a static alignment
+    (``static``) and after a hand-over in flight (``tactical``).
+
+    Seeded with the raw features less the biases, the history held ``E f`` (an axis
+    error times g over the arm on the angular acceleration): the first blocks' errors
+    read 13-700 times the noise floor and opened the forecast-error noise at every start.
+    The ten blocks share the forecast's window of 5, so each channel's mean of
+    ``d^2 k / floor`` is taken as chi-square with 2 dof (0.999 quantile)."""
+    scn = load_flight(scenario, sets)
+    sim = simulate_flight(scn, 0)
+    keep = sim.samples.t_s <= t_end_s
+    samples = type(sim.samples)(t_s=sim.samples.t_s[keep], accel_mps2=sim.samples.accel_mps2[keep])
+    fixes = sim.fixes.select(sim.fixes.t_s <= t_end_s)
+    seen: list[np.ndarray] = []
+    last = {"t": None}
+
+    def grab(p: Pipeline) -> None:
+        if last["t"] is not None:
+            k = round((p.nf.t_s - last["t"]) / p.dt)
+            seen.append(p.last_forecast_error**2 * k / p.forecast_error_floor)
+        last["t"] = p.nf.t_s
+
+    pipe = Pipeline(sim.config, on_epoch=grab)
+    _feed(pipe, samples, fixes, None)
+    ratio = np.array(seen[:10]).mean(axis=0)
+    assert len(seen) >= 10
+    assert np.all(ratio < chi2.ppf(0.999, 2) / 2), ratio
+
+
 def test_forecast_noise_grows_the_rate_covariance_in_a_roll_out_not_in_a_dive():
     """tactical's roll-out of the climbing turn (47 s) against its steady dive (33 s)."""
     scn = load_flight("tactical", ["run.rate_hz=200"])
