@@ -72,8 +72,17 @@ def test_forecast_noise_is_a_constant_error_over_the_block():
     np.testing.assert_array_equal(nf.P - p0, (nf.P - p0).T)
 
 
-def _forecast_errors(scn, run: int = 0) -> tuple[np.ndarray, np.ndarray, Pipeline]:
+def _forecast_errors(
+    scn, run: int = 0, t_end_s: float | None = None
+) -> tuple[np.ndarray, np.ndarray, Pipeline]:
+    """Each block's time and ``d^2 k`` (the forecast error squared times the block's
+    samples), over the whole flight or up to ``t_end_s``."""
     sim = simulate_flight(scn, run)
+    samples, fixes = sim.samples, sim.fixes
+    if t_end_s is not None:
+        keep = samples.t_s <= t_end_s
+        samples = type(samples)(t_s=samples.t_s[keep], accel_mps2=samples.accel_mps2[keep])
+        fixes = fixes.select(fixes.t_s <= t_end_s)
     out_t, out_d, out_k = [], [], []
     last = {"t": None}
 
@@ -86,7 +95,7 @@ def _forecast_errors(scn, run: int = 0) -> tuple[np.ndarray, np.ndarray, Pipelin
         last["t"] = t
 
     pipe = Pipeline(sim.config, on_epoch=grab)
-    _feed(pipe, sim.samples, sim.fixes, None)
+    _feed(pipe, samples, fixes, None)
     d = np.array(out_d)
     return np.array(out_t), d * d * np.array(out_k)[:, None], pipe
 
@@ -120,24 +129,9 @@ def test_the_first_forecasts_errors_are_noise(scenario, sets, t_end_s):
     read 13-700 times the noise floor and opened the forecast-error noise at every start.
     The ten blocks share the forecast's window of 5, so each channel's mean of
     ``d^2 k / floor`` is taken as chi-square with 2 dof (0.999 quantile)."""
-    scn = load_flight(scenario, sets)
-    sim = simulate_flight(scn, 0)
-    keep = sim.samples.t_s <= t_end_s
-    samples = type(sim.samples)(t_s=sim.samples.t_s[keep], accel_mps2=sim.samples.accel_mps2[keep])
-    fixes = sim.fixes.select(sim.fixes.t_s <= t_end_s)
-    seen: list[np.ndarray] = []
-    last = {"t": None}
-
-    def grab(p: Pipeline) -> None:
-        if last["t"] is not None:
-            k = round((p.nf.t_s - last["t"]) / p.dt)
-            seen.append(p.last_forecast_error**2 * k / p.forecast_error_floor)
-        last["t"] = p.nf.t_s
-
-    pipe = Pipeline(sim.config, on_epoch=grab)
-    _feed(pipe, samples, fixes, None)
-    ratio = np.array(seen[:10]).mean(axis=0)
-    assert len(seen) >= 10
+    t, d2k, pipe = _forecast_errors(load_flight(scenario, sets), t_end_s=t_end_s)
+    ratio = (d2k[:10] / pipe.forecast_error_floor).mean(axis=0)
+    assert t.shape[0] >= 10
     assert np.all(ratio < chi2.ppf(0.999, 2) / 2), ratio
 
 
