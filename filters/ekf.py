@@ -233,6 +233,13 @@ class FilterNoise:
         ``A = (I + E_6)^-1`` (:func:`filters.pipeline.filter_noise`). The transition's
         bias columns, the rate measurement's and the lift law's force-bias term use
         it. None: the identity (no forecast feedback).
+    block_wdot_cov : array (3, 3), optional
+        Per-sample covariance of the angular acceleration as one block's own samples
+        carry it: the raw solve's. ``feature_cov`` maps the noise through a forecast
+        compensation's loop, which holds for errors integrated over many blocks; an
+        error that lives one block (the rate while a zero-rate update resets it at
+        every block, :attr:`NavFilter.rate_reset_each_block`) sees this one. None:
+        ``feature_cov``'s.
     """
 
     feature_cov: np.ndarray
@@ -241,6 +248,7 @@ class FilterNoise:
     position_sigma_m: float = 0.0
     quad_cross_cov: np.ndarray | None = None
     bias_effect: np.ndarray | None = None
+    block_wdot_cov: np.ndarray | None = None
 
 
 @dataclass
@@ -265,6 +273,8 @@ class Counters:
     attitude_reopens: int = 0
     coast_model_updates: int = 0
     handover_model_updates: int = 0
+    zero_rate_used: int = 0
+    zero_rate_rejected: int = 0
 
 
 @dataclass
@@ -508,6 +518,9 @@ class NavFilter:
             m = getattr(self.noise, name)
             if m is not None and np.shape(m) != (k, k):
                 raise ValueError(f"noise.{name} must be ({k}, {k}), got {np.shape(m)}")
+        bw = self.noise.block_wdot_cov
+        if bw is not None and np.shape(bw) != (3, 3):
+            raise ValueError(f"noise.block_wdot_cov must be (3, 3), got {np.shape(bw)}")
         cq = self.noise.quad_cross_cov
         if cq is not None and np.shape(cq) != (6, self.layout.nq):
             raise ValueError(
@@ -542,6 +555,16 @@ class NavFilter:
         self._eye3 = np.eye(3)
         self._g = gravity_n_mps2()
         self._sww = self.noise.feature_cov[0:3, 0:3]
+        # the rate's noise over one block (FilterNoise.block_wdot_cov): the loop's mapped
+        # noise plus the positive part of what the mapping took off
+        self._sww_block = self._sww
+        if self.noise.block_wdot_cov is not None:
+            ev, vec = np.linalg.eigh(np.asarray(self.noise.block_wdot_cov) - self._sww)
+            self._sww_block = self._sww + (vec * np.maximum(ev, 0.0)) @ vec.T
+        #: True while a zero-rate update resets the rate at every block (the pipeline
+        #: sets it): the propagation then gives the rate one block's own noise
+        #: (FilterNoise.block_wdot_cov), not the loop's
+        self.rate_reset_each_block = False
         self._sff = self.noise.feature_cov[3:6, 3:6]
         self._sfw = self.noise.feature_cov[3:6, 0:3]
         self._sqq = self.noise.feature_cov[6:, 6:]
@@ -948,15 +971,19 @@ class NavFilter:
         A feature-noise sample ``n = [n_w, n_f]`` at step ``j`` of ``k`` enters
         the rate as ``dt n_w``, the attitude as ``(k - j) dt^2 n_w``, the
         velocity as ``dt n_f`` and the position as ``(k - j) dt^2 n_f``; the
-        sums over ``j`` of 1, ``(k - j)`` and ``(k - j)^2`` give the weights.
+        sums over ``j`` of 1, ``(k - j)`` and ``(k - j)^2`` give the weights. With
+        :attr:`rate_reset_each_block` the angular acceleration's noise is one block's
+        own (``FilterNoise.block_wdot_cov``).
         """
-        key = (k, dt)
+        block = self.rate_reset_each_block
+        key = (k, dt, block)
         qb = self._q12_cache.get(key)
         if qb is None:
             s0 = k * dt**2
             s1 = k * (k - 1) / 2.0 * dt**3
             s2 = (k - 1) * k * (2 * k - 1) / 6.0 * dt**4
-            sff, sfw, sww = self._sff, self._sfw, self._sww
+            sff, sfw = self._sff, self._sfw
+            sww = self._sww_block if block else self._sww
             qb = np.block(
                 [
                     [s2 * sff, s1 * sff, s2 * sfw, s1 * sfw],
@@ -1048,6 +1075,36 @@ class NavFilter:
         self._inject()
         self.counters.rate_updates += 1
         return nis
+
+    def rate_at_rest_model(self) -> np.ndarray:
+        """The zero-rate update's Jacobian (3, n): it reads the body rate states."""
+        h = np.zeros((3, self.layout.n))
+        h[:, RATE] = np.eye(3)
+        return h
+
+    def update_zero_rate(self, sigma_rps: float) -> tuple[float, bool]:
+        """Zero-rate update at detected rest: the body rate (FRD, rad/s) is measured as zero.
+
+        A vehicle standing still does not turn in the filter's NED frame (which leaves the
+        Earth's rotation out), so ``omega_b = 0`` with 1-sigma ``sigma_rps`` per axis:
+        its rocking on its mounts, or a numerical floor where the rest is exact. It is
+        what holds the yaw rate at rest, where a gyro-free array has nothing else: the
+        rate products vanish with the rates, and without a horizontal acceleration GPS
+        does not see the heading. It also makes the angular-acceleration biases
+        observable (the rate stays zero while their error would integrate into it).
+        Gated on the 3-dof chi-square threshold (a rejection says the vehicle turns:
+        :class:`filters.rest.RestDetector` ends the rest).
+
+        Returns ``(nis, accepted)``.
+        """
+        if not (np.isfinite(sigma_rps) and sigma_rps > 0.0):
+            raise ValueError(f"sigma_rps must be finite and > 0, got {sigma_rps}")
+        nis, ok = self._gated_update(
+            -self.w, np.eye(3) * (sigma_rps * sigma_rps), self.rate_at_rest_model()
+        )
+        self.counters.zero_rate_used += int(ok)
+        self.counters.zero_rate_rejected += int(not ok)
+        return nis, ok
 
     def update_static_biases(
         self,

@@ -35,6 +35,7 @@ from filters.ekf import (
     NavFilter,
     static_mean_walk_s,
 )
+from filters.rest import RestDetector
 from filters.state import ATT, POS, RATE, VEL
 from filters.updates import update_correlated
 from filters.vehicle_model import LATERAL, VERTICAL, BodyVelocityRecord
@@ -201,6 +202,12 @@ def filter_noise(
         correction ``d`` moves the features by ``T d``, not ``d``, and the
         angular-acceleration bias estimate converged on ``S b`` with ``T S b``
         as its truth (tactical, 40 runs: 6-8 sigma off by 4 s).
+
+        ``block_wdot_cov`` (the rate's noise over one block, what a zero-rate update
+        at rest sees) is the raw angular-acceleration noise, without the forecast's
+        correction (``filter.forecast_correction``): the loop's ``A`` holds for errors
+        integrated over many blocks only. With the correction the block's own noise
+        reaches the state as ``(I - E_6) n``, about ``A n``, and it stays None.
     """
     s = solver.solve_matrix
     # a floor of 1e-6 m/s^2 keeps the prior positive definite when a config says "no bias"
@@ -211,7 +218,13 @@ def filter_noise(
     # one sample's [wdot, f] noise with its quadratic terms' (the same block's: raw)
     quad_cross_cov = feature_cov[0:6, 6:].copy()
     bias_effect = None
+    block_wdot_cov = None
     if feedback is not None:
+        if not cfg.filter.forecast_correction:
+            # one block's own angular-acceleration noise is the raw solve's; with the
+            # forecast's correction it is not: the correction takes E_6 of the block's
+            # forecast error out, its own noise included, which leaves (I - E_6) n ~ A n
+            block_wdot_cov = feature_cov[0:3, 0:3].copy()
         k = s.shape[0]
         a = np.linalg.inv(np.eye(6) + feedback[0:6])
         t = np.eye(k)
@@ -228,6 +241,7 @@ def filter_noise(
         position_sigma_m=cfg.position_sigma_m,
         quad_cross_cov=quad_cross_cov,
         bias_effect=bias_effect,
+        block_wdot_cov=block_wdot_cov,
     )
 
 
@@ -768,6 +782,17 @@ class Pipeline:
             gain = noise_gain(self.predictor, self._hist[:window, 0:9])[3:9]
             self.forecast_error_floor = (1.0 + gain) * np.diag(self.solver.covariance())[0:6]
         self._full_check_every = max(1, round(cfg.filter.rate_hz))  # Cholesky once a second
+        # the zero-rate update at detected rest (filter.rest_rate_sigma_dps > 0)
+        self._rest_sigma = float(np.deg2rad(cfg.filter.rest_rate_sigma_dps))
+        self.rest: RestDetector | None = None
+        if self._rest_sigma > 0.0:
+            # the blocks' own noise: the raw solve's (a little less with the forecast's
+            # correction, which leaves the test a little conservative)
+            self.rest = RestDetector(self.solver.covariance()[0:6, 0:6], k_reg * dt, k_reg)
+            if ini.alignment == "static":
+                # the alignment's rest goes on: its mean [wdot, f] with the mounting
+                # term at rest out, as the compensated blocks hold them
+                self.rest.start_at_rest(nf.t_s, static_mean[0:6], n_avg / k_reg)
         self._e = 0
         self._t_hold = 0.0  # seconds of held samples in the current run
         self.started = True
@@ -880,6 +905,24 @@ class Pipeline:
                 sg_true = nf.geometry_jacobian(
                     truth.omega_dot_b_rps2[blk].mean(axis=0), truth.omega_b_rps[blk].mean(axis=0)
                 )
+        rest = self.rest
+        if rest is not None:
+            ok = False
+            if rest.at_rest:
+                # the rate at the block's start (the last block's end) is zero
+                _, ok = nf.update_zero_rate(self._rest_sigma)
+                if not ok:
+                    rest.interrupt(nf.t_s)
+            # reset to zero, the rate's error over this block is this block's noise
+            nf.rate_reset_each_block = ok
+            if ok and p_bound is not None:
+                _, p_bound = kf_update(
+                    np.zeros(nf.layout.n),
+                    p_bound,
+                    np.zeros(3),
+                    np.eye(3) * self._rest_sigma**2,
+                    nf.rate_at_rest_model(),
+                )
         w_blk = nf.propagate(xs[:, 0:3], xs[:, 3:6], dt, sg)
         if n_ok < kk or self._t_hold > 0.0:
             self._hold_noise(bad, dt)
@@ -926,6 +969,8 @@ class Pipeline:
             row = window
         self._hist[row] = np.concatenate([nf.w, self._last_mean[0:6] - nf.bias[0:6]])
         self._h_n = row + 1
+        if rest is not None:
+            rest.observe_block(nf.t_s, self._last_mean[0:6], n_ok)
         self._wd_smooth += self._smooth_gain * (
             self._last_mean[0:3] - nf.bias[0:3] - self._wd_smooth
         )
@@ -1046,6 +1091,8 @@ class Pipeline:
         gap = gap_reset_s > 0 and nf.t_s - nf.t_last_position_fix > gap_reset_s
         resets_before = nf.counters.gps_resets + nf.counters.gps_gap_resets
         res = nf.update_gps(ned, vel, sig, vacc, t_fix - nf.t_s, reset=gap)
+        if self.rest is not None:
+            self.rest.observe_fix(t_fix, vel, vacc)
         if self.keep_estimates:
             self._inn.append((t_fix, res.nis_pos, res.nis_vel, res.pos_accepted, res.vel_accepted))
         self.last_gps = res
@@ -1132,6 +1179,8 @@ class Pipeline:
                 "gps resets after an outage": nf.counters.gps_gap_resets,
                 "rate updates": nf.counters.rate_updates,
                 "rate updates rejected (gate)": nf.counters.rate_rejected,
+                "zero-rate updates at rest": nf.counters.zero_rate_used,
+                "zero-rate updates rejected (gate)": nf.counters.zero_rate_rejected,
                 "sideslip updates": nf.counters.sideslip_used,
                 "sideslip updates rejected (gate)": nf.counters.sideslip_rejected,
                 "angle-of-attack updates": nf.counters.aoa_used,

@@ -37,7 +37,7 @@ truth to separate files.
                    forecast_error_persistence, forecast_correction,
                    remainder_off_constraint, vehicle_model_rate_hz,
                    count_by_prior_weight, body_velocity_error, position_consider,
-                   remainder_consider
+                   remainder_consider, rest_rate_sigma_dps
                    (each explained in FilterSettings' docstring)
 """
 
@@ -280,6 +280,23 @@ class FilterSettings:
     off in ``uav-survey``, whose coast's end it left optimistic and whose joint it lowered
     while GPS holds (docs/filter-notes.md, "the velocity error in the body frame, with the
     reset's Jacobian" and "Not met yet").
+
+    ``rest_rate_sigma_dps`` > 0 (default 0: off) adds the zero-rate update at detected
+    rest (``filters.ekf.NavFilter.update_zero_rate``): at the start of every block while
+    :class:`filters.rest.RestDetector` says the vehicle stands still, the body rate is
+    measured as zero with this 1-sigma per axis (deg/s): the vehicle's rocking on its
+    mounts, or a numerical floor where the rest is exact (the simulated flights: 1e-4).
+    At rest nothing else holds a gyro-free array's yaw rate (the rate products vanish
+    with the rates, and GPS sees no heading without a horizontal acceleration): without
+    the update two minutes at rest (``static``) lost the heading with a yaw-rate sigma
+    that stopped at 1.6 deg/s (0.028 rad/s) while the error grew to 11 deg/s by 120 s
+    (docs/filter-notes.md, "two minutes at rest"). Rest is the static alignment's,
+    going on, or one the GPS velocity and the array's steadiness confirm for 1 s; any
+    change of the array's output, a fix that reads motion, or a rejected update ends it.
+    A spin at constant rate with no angular acceleration (a multirotor yawing in hover)
+    reads as rest to the array: the update's gate rejects it once the filter's rate
+    contradicts zero, but not if the spin began before the filter did. Leave it off for
+    such vehicles.
     """
 
     rate_hz: float = 100.0
@@ -312,6 +329,7 @@ class FilterSettings:
     body_velocity_error: bool = False
     position_consider: bool = False
     remainder_consider: bool = False
+    rest_rate_sigma_dps: float = 0.0
 
     def __post_init__(self) -> None:
         if self.compensation not in COMPENSATIONS:
@@ -355,6 +373,11 @@ class FilterSettings:
         if not (np.isfinite(self.gps_gap_reset_s) and self.gps_gap_reset_s >= 0.0):
             raise ValueError(
                 f"filter.gps_gap_reset_s must be a finite number >= 0, got {self.gps_gap_reset_s}"
+            )
+        if not (np.isfinite(self.rest_rate_sigma_dps) and 0.0 <= self.rest_rate_sigma_dps <= 10.0):
+            raise ValueError(
+                "filter.rest_rate_sigma_dps must be a number in [0, 10], got "
+                f"{self.rest_rate_sigma_dps}"
             )
         for name in ("hold_wdot_sigma_rps2", "hold_force_sigma_mps2"):
             v = getattr(self, name)
