@@ -86,6 +86,44 @@ def test_channel_count_mismatch():
         )
 
 
+def _channel_config(corrected: bool):
+    """What ``filter_noise`` reads of a RunConfig: the channel model (1 mg turn-on
+    bias, 1e-5 m/s^2/sqrt(s) walk) and whether the forecast's error is corrected."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(
+        turn_on_bias_mps2=np.full(9, 0.0098),
+        bias_rw_mps2_rts=np.full(9, 1e-5),
+        position_sigma_m=0.0,
+        filter=SimpleNamespace(forecast_correction=corrected),
+    )
+
+
+def _loop_errors(
+    e6: np.ndarray, sigma: float, n: int, rng: np.random.Generator, corrected: bool = False
+) -> np.ndarray:
+    """The compensated block means' errors (n, 6) of the GM(1,1) forecast loop.
+
+    The sensors read ``(I + E) phi + n`` (white ``n`` of 1-sigma ``sigma``); the
+    compensation subtracts ``E`` times the forecast made from the compensated means.
+    ``corrected`` also takes ``E`` of the block's forecast error out (the pipeline's
+    ``filter.forecast_correction``).
+    """
+    phi = np.array([0.3, -0.2, 0.1, 0.5, -0.4, 9.0])
+    window = 5
+    gp = GreyPredictor(window=window, shift=np.full(6, 20.0))
+    hist = np.tile(phi, (window, 1))
+    errs = np.empty((n, 6))
+    for k in range(n):
+        forecast, _ = gp.forecast(hist[-window:], k)
+        comp = phi + e6 @ phi + sigma * rng.standard_normal(6) - e6 @ forecast
+        if corrected:
+            comp = comp - e6 @ (comp - forecast)
+        errs[k] = comp - phi
+        hist = np.vstack([hist[1:], comp])
+    return errs
+
+
 def test_forecast_feedback_scales_the_long_run_noise_by_the_closed_loop():
     """The loop the filter's noise model assumes (``filters.pipeline.filter_noise``).
 
@@ -100,18 +138,9 @@ def test_forecast_feedback_scales_the_long_run_noise_by_the_closed_loop():
     rng = np.random.default_rng(11)
     e6 = 0.3 * np.eye(6) + 0.03 * rng.standard_normal((6, 6))
     a = np.linalg.inv(np.eye(6) + e6)
-    phi = np.array([0.3, -0.2, 0.1, 0.5, -0.4, 9.0])
     sigma = 0.05
-    window = 5
-    gp = GreyPredictor(window=window, shift=np.full(6, 20.0))
     n_seg, seg = 150, 200
-    hist = np.tile(phi, (window, 1))
-    errs = np.empty((n_seg * seg, 6))
-    for k in range(errs.shape[0]):
-        forecast, _ = gp.forecast(hist[-window:], k)
-        comp = phi + e6 @ phi + sigma * rng.standard_normal(6) - e6 @ forecast
-        errs[k] = comp - phi
-        hist = np.vstack([hist[1:], comp])
+    errs = _loop_errors(e6, sigma, n_seg * seg, rng)
     means = errs.reshape(n_seg, seg, 6).mean(axis=1)
 
     def statistic(cov_per_block: np.ndarray) -> float:
@@ -137,27 +166,14 @@ def test_one_blocks_own_noise_is_raw_unless_the_forecast_is_corrected(corrected)
     ``A n``. 30000 blocks, per-channel variance against both models (``E`` 0.07 on
     the diagonal, as ``uav-survey``'s 6 mm offset: the models 13 % apart).
     """
-    from types import SimpleNamespace
 
     from filters.pipeline import filter_noise
 
     rng = np.random.default_rng(13)
     e6 = 0.07 * np.eye(6) + 0.01 * rng.standard_normal((6, 6))
     a = np.linalg.inv(np.eye(6) + e6)
-    phi = np.array([0.3, -0.2, 0.1, 0.5, -0.4, 9.0])
     sigma = 0.05
-    window = 5
-    gp = GreyPredictor(window=window, shift=np.full(6, 20.0))
-    hist = np.tile(phi, (window, 1))
-    n = 30000
-    errs = np.empty((n, 6))
-    for k in range(n):
-        forecast, _ = gp.forecast(hist[-window:], k)
-        comp = phi + e6 @ phi + sigma * rng.standard_normal(6) - e6 @ forecast
-        if corrected:
-            comp = comp - e6 @ (comp - forecast)
-        errs[k] = comp - phi
-        hist = np.vstack([hist[1:], comp])
+    errs = _loop_errors(e6, sigma, 30000, rng, corrected)
     var = errs.var(axis=0)
     raw = np.full(6, sigma**2)
     mapped = np.diag(a @ a.T) * sigma**2
@@ -166,12 +182,7 @@ def test_one_blocks_own_noise_is_raw_unless_the_forecast_is_corrected(corrected)
     assert np.all(np.abs(var / right - 1.0) < 0.04), var / right
     assert np.all(np.abs(var / wrong - 1.0) > 0.08), var / wrong
 
-    cfg = SimpleNamespace(
-        turn_on_bias_mps2=np.full(9, 0.0098),
-        bias_rw_mps2_rts=np.full(9, 1e-5),
-        position_sigma_m=0.0,
-        filter=SimpleNamespace(forecast_correction=corrected),
-    )
+    cfg = _channel_config(corrected)
     solver = ArraySolver(nine_accelerometer_cube(0.1))
     noise = filter_noise(solver, cfg, 0.05 * rng.standard_normal((solver.solve_matrix.shape[0], 6)))
     if corrected:
@@ -190,7 +201,6 @@ def test_forecast_feedback_returns_the_bias_estimates_error():
     features by ``A`` of it. The earlier model (``A b - b_hat``, the estimate
     outside the loop) must fail, and ``filter_noise`` must give this ``A``.
     """
-    from types import SimpleNamespace
 
     from filters.pipeline import filter_noise
 
@@ -212,14 +222,7 @@ def test_forecast_feedback_returns_the_bias_estimates_error():
     assert np.max(np.abs(err - (a @ b - b_hat))) > 1e-3
 
     # the pipeline's noise model: T = [[A, 0], [-E_q A, I]] on the raw biases
-    # filter_noise reads these channel-model fields of a RunConfig, and whether the
-    # forecast's error is corrected
-    cfg = SimpleNamespace(
-        turn_on_bias_mps2=np.full(9, 0.0098),
-        bias_rw_mps2_rts=np.full(9, 1e-5),
-        position_sigma_m=0.0,
-        filter=SimpleNamespace(forecast_correction=False),
-    )
+    cfg = _channel_config(False)
     solver = ArraySolver(nine_accelerometer_cube(0.1))
     k = solver.solve_matrix.shape[0]
     feedback = 0.05 * rng.standard_normal((k, 6))
