@@ -192,9 +192,8 @@ class RestDetector:
     def interrupt(self, t_s: float) -> None:
         """End the rest now (the zero-rate update was rejected: the vehicle turns)."""
         self.at_rest = False
-        self._t_steady = t_s
-        self._slow = np.zeros(6)
-        self._v_slow = 0.0
+        if self._ref is not None:
+            self._restart(t_s, self._ref, self._v_ref)
 
     # ------------------------------------------------------------------ internals
     def _restart(self, t_s: float, x: np.ndarray, v_ref: float) -> None:
