@@ -551,6 +551,8 @@ class NavFilter:
         self._lift_w = 1.0  # the lift-off blend w(V)
         self._lift_axis = np.array([0.0, 0.0, -1.0])  # n_w = _lift_axis . f (FRD)
         self._lift_dw = 0.0  # dw/dV of the lift-off blend, s/m
+        # the load's sensitivity to the sensor positions (3, 3N), with DR states
+        self._lift_sg_f: np.ndarray | None = None
         self._eye = np.eye(n)
         self._eye3 = np.eye(3)
         self._g = gravity_n_mps2()
@@ -647,6 +649,7 @@ class NavFilter:
         self._lift_u_jac = 0.0
         self._lift_u_recent = []
         self._lift_u_var = 0.0
+        self._lift_sg_f = None
         ia = self.layout.aoa
         p[ia, ia] = np.diag(
             [self.aoa_prior_sigma_rad**2, self.aoa_lift_k_sigma_m**2][: ia.stop - ia.start]
@@ -1322,7 +1325,8 @@ class NavFilter:
         ``w [1, u]`` for the law's offset and ``K``; through ``u = n_w / V^2``
         (:meth:`set_load`), ``-2 w K u v^T / V^2`` for the velocity and
         ``-w K [sin a, 0, -cos a] T_f / V^2`` for the biases (``T_f`` the force rows of
-        ``noise.bias_effect``); through the
+        ``noise.bias_effect``) and likewise, with the load's ``S G`` force rows for
+        ``T_f`` (:meth:`set_load`'s ``sg_f``), for the sensor positions; through the
         lift-off blend ``w(V)``, ``w'(V) (alpha_b + K u) v^T / V``. Zero without the
         ``AOA`` state. The ``u`` here is the load :data:`LIFT_JACOBIAN_LAG_BLOCKS`
         blocks back, whose noise is independent of the predicted angle's (equal to the
@@ -1345,6 +1349,8 @@ class NavFilter:
             wk = self._lift_w * self.aoa_k / speed2
             j[VEL] += -2.0 * wk * self._lift_u_jac * vel_ned_mps
             j[self.layout.bias] += -wk * (self._lift_axis @ self._bias_effect_f)
+            if self.layout.n_dr and self._lift_sg_f is not None:
+                j[self.layout.dr] += -wk * (self._lift_axis @ self._lift_sg_f)
         return j
 
     @property
@@ -1408,7 +1414,12 @@ class NavFilter:
             return 0.0
         return blend_spread_var(x0, sx)
 
-    def set_load(self, f_b_mps2: np.ndarray, load_cov: np.ndarray | None = None) -> None:
+    def set_load(
+        self,
+        f_b_mps2: np.ndarray,
+        load_cov: np.ndarray | None = None,
+        sg_f: np.ndarray | None = None,
+    ) -> None:
         """Feed the lift law the block's specific force (FRD, m/s^2, biases removed).
 
         ``u = n_w / V^2`` with the wind-frame normal load ``n_w = sin(a) f_x - cos(a) f_z``
@@ -1422,7 +1433,14 @@ class NavFilter:
         extrapolation weights them). The angle carries it, ``Var(u) = a^T load_cov a / V^4``
         along the lift axis ``a``: the angle-of-attack model's R and :attr:`aoa_sigma`
         add it. None: a noise-free load.
+
+        ``sg_f`` (3, 3N), with ``DR`` states: the force rows of the load's sensitivity
+        to the sensor positions (:meth:`geometry_jacobian`'s, weighted as the load's
+        blocks are), whose ``S G dr_hat`` the caller has taken out of ``f_b_mps2`` as the
+        propagation does; the angle of attack's Jacobian carries their errors as it
+        carries the biases'. None: the load does not depend on them.
         """
+        self._lift_sg_f = None if sg_f is None else np.asarray(sg_f, dtype=float)
         speed = self._speed()
         a = self.aoa  # the angle n_w is taken at: the last block's
         v_lof = self.liftoff_speed_mps

@@ -181,6 +181,54 @@ def test_lift_law_jacobian_matches_finite_differences(speed_scale):
     assert (nf._lift_dw > 0) == (speed_scale < 1.0)
 
 
+def test_lift_law_jacobian_carries_the_sensor_positions_through_the_load():
+    """With sensor-position (``DR``) states the load the lift law reads has lost
+    ``S G dr_hat`` as the propagation's force has, so an error in ``dr`` moves the angle
+    of attack as a force bias does: the Jacobian's ``DR`` columns (from ``set_load``'s
+    ``sg_f``) against central differences of the whole chain, and zero without ``sg_f``."""
+    layout = nine_accelerometer_cube(0.1)
+    solver = ArraySolver(layout, np.full(9, 1e-3))
+    cov = solver.covariance()
+    nf = NavFilter(
+        FilterNoise(cov, cov, cov * 1e-6, 0.0005),
+        PAIRS,
+        np.zeros(3),
+        sensor_axes_b=layout.axes_b,
+        solve_matrix=solver.solve_matrix,
+        aoa_prior_sigma_rad=0.02,
+        aoa_lift_k_m=18.0,
+        aoa_lift_k_sigma_m=0.9,
+    )
+    initialise_level(nf)
+    assert nf.layout.n_dr == 27 and nf.layout.n_aoa == 2
+    q = quat_from_rotvec(np.array([0.3, -0.2, 0.9]))
+    vel = np.array([40.0, -25.0, 2.0])
+    f_b = np.array([1.0, -0.4, -19.0])
+    sg_f = nf.geometry_jacobian(np.array([2.0, -6.0, 1.5]), np.array([1.2, -0.8, 0.5]))[3:6]
+    nf.q, nf.vel = q, vel
+
+    def model(d_dr):
+        nf._lift_u, nf._lift_w = 0.0, 1.0  # the same angle inside n_w every time
+        nf.set_load(f_b - sg_f @ d_dr, sg_f=sg_f)  # f_true = f - S G d_dr
+        return nf.body_velocity_model(q, vel, VERTICAL, nf.aoa)[0]
+
+    model(np.zeros(27))
+    _, h = nf.body_velocity_model(q, vel, VERTICAL, nf.aoa)
+    dr = nf.layout.dr
+    eps = 1e-7
+    fd = np.empty(27)
+    for k in range(27):
+        d = np.zeros(27)
+        d[k] = eps
+        fd[k] = (model(d) - model(-d)) / (2 * eps)
+    np.testing.assert_allclose(h[0, dr], fd, rtol=1e-5, atol=1e-9)
+    assert np.max(np.abs(h[0, dr])) > 1e-3  # exercised: m/s per m of sensor position
+    nf._lift_u, nf._lift_w = 0.0, 1.0
+    nf.set_load(f_b)
+    _, h = nf.body_velocity_model(q, vel, VERTICAL, nf.aoa)
+    assert not np.any(h[0, dr])
+
+
 def test_lift_law_jacobian_takes_an_older_load_than_the_prediction():
     """The angle is predicted with the newest load; the Jacobian's ``K`` column (and
     the velocity term through ``u``) with the load ``LIFT_JACOBIAN_LAG_BLOCKS`` blocks
