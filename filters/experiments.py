@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from filters.control import fix_noise, perfect_array_control
+from filters.control import CONTROL_SEED, fix_noise, perfect_array_control, process_noise_control
 from filters.ekf import CovarianceError
 from filters.evaluate import (
     TARGET_SHARE,
@@ -271,8 +271,10 @@ def _one_run(scn: FlightScenario, i: int, method: str) -> dict:
         ne["aoa"] = ne_aoa.astype(np.float32)
     cfg = sim.config
     ltp = LocalTangentPlane(cfg.lat0_deg, cfg.lon0_deg, cfg.alt0_m)
-    control = perfect_array_control(
-        sim.fixes, fix_noise(sim.fixes, sim.truth, ltp, cfg.antenna_b_m), sim.glitched
+    fix_err = fix_noise(sim.fixes, sim.truth, ltp, cfg.antenna_b_m)
+    control = perfect_array_control(sim.fixes, fix_err, sim.glitched)
+    control_pn = process_noise_control(
+        sim.fixes, fix_err, np.random.default_rng([CONTROL_SEED, i]), skip=sim.glitched
     )
     inn = res.innovations
     keep = np.ones(inn.t_s.shape, dtype=bool)
@@ -291,6 +293,8 @@ def _one_run(scn: FlightScenario, i: int, method: str) -> dict:
         "control_pos": control.nees_pos,
         "control_vel": control.nees_vel,
         "control_t_s": control.t_s,
+        "control_pos-pn": control_pn.nees_pos,
+        "control_vel-pn": control_pn.nees_vel,
         "att_rms_deg": float(np.rad2deg(np.sqrt(np.mean(np.sum(errs.att_ned_rad**2, axis=1))))),
     }
 
@@ -379,9 +383,10 @@ def _control_blocks(
     """The perfect-array control's position and velocity NEES (:mod:`filters.control`)
     over the runs, from ``from_s`` s on, as :func:`_block` summarises a block (with
     ``reference``, the consistent-filter share too: a check of that reference on a
-    statistic that is chi-square by construction)."""
+    statistic that is chi-square by construction); ``pos-pn`` and ``vel-pn`` are the
+    control with process noise (:func:`filters.control.process_noise_control`)."""
     out = {}
-    for name in ("pos", "vel"):
+    for name in ("pos", "vel", "pos-pn", "vel-pn"):
         key = f"control_{name}"
         per_run = [r[key] if from_s is None else r[key][r["control_t_s"] >= from_s] for r in rs]
         out[name] = _block(per_run, 3, runs, reference)[0]

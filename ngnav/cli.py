@@ -456,7 +456,7 @@ def cmd_consistency(args: argparse.Namespace) -> int:
                 )
     print(
         "  control pos/vel: NEES of a perfect-array filter on the same fixes (filters.control), "
-        "consistent by construction"
+        "consistent by construction; -pn: with process noise, a navigation filter's time course"
     )
     verdict = out["target"]
     misses = ", ".join(f"{k} {100 * v:.1f} %" for k, v in verdict["misses"].items())
