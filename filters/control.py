@@ -93,41 +93,7 @@ def perfect_array_control(
     skip : array (M,) of bool, optional
         Fixes not fused (glitches); their epochs carry the predicted NEES.
     """
-    m = len(fixes)
-    noise = np.asarray(noise, dtype=float)
-    if noise.shape != (m, 6):
-        raise ValueError(f"noise has shape {noise.shape}, expected ({m}, 6)")
-    skip = np.zeros(m, dtype=bool) if skip is None else np.asarray(skip, dtype=bool)
-    nees_pos = np.full(m, np.nan)
-    nees_vel = np.full(m, np.nan)
-    x: np.ndarray | None = None
-    p = np.zeros((6, 6))
-    f = np.eye(6)
-    h = np.eye(6)
-    q = np.zeros((6, 6))
-    for k in range(m):
-        r = np.diag(
-            np.concatenate(
-                [
-                    [fixes.h_acc_m[k] ** 2] * 2,
-                    [fixes.v_acc_m[k] ** 2],
-                    [fixes.vel_acc_mps[k] ** 2] * 3,
-                ]
-            )
-        )
-        if x is not None:
-            f[0:3, 3:6] = np.eye(3) * (fixes.t_s[k] - fixes.t_s[k - 1])
-            x, p = kf_predict(x, p, f, q)
-        if not skip[k]:
-            if x is None:
-                x, p = noise[k].copy(), r
-            else:
-                x, p = kf_update(x, p, noise[k], r, h)
-        if x is None:
-            continue
-        nees_pos[k] = x[0:3] @ np.linalg.solve(p[0:3, 0:3], x[0:3])
-        nees_vel[k] = x[3:6] @ np.linalg.solve(p[3:6, 3:6], x[3:6])
-    return ControlNees(np.asarray(fixes.t_s, dtype=float), nees_pos, nees_vel)
+    return process_noise_control(fixes, noise, None, 0.0, skip)
 
 
 #: White-acceleration power spectral density of :func:`process_noise_control`'s own
@@ -142,7 +108,7 @@ CONTROL_SEED = 99
 def process_noise_control(
     fixes: GpsFixes,
     noise: np.ndarray,
-    rng: np.random.Generator,
+    rng: np.random.Generator | None,
     accel_psd_m2ps3: float = CONTROL_ACCEL_PSD,
     skip: np.ndarray | None = None,
 ) -> ControlNees:
@@ -164,13 +130,15 @@ def process_noise_control(
     ----------
     fixes, noise, skip
         As for :func:`perfect_array_control`.
-    rng : numpy.random.Generator
-        The control's own truth (one draw per fix interval).
+    rng : numpy.random.Generator or None
+        The control's own truth (one draw per fix interval); None only with a zero PSD.
     accel_psd_m2ps3 : float
         White-acceleration PSD of that truth, per axis, m^2/s^3 (>= 0).
     """
     if not (np.isfinite(accel_psd_m2ps3) and accel_psd_m2ps3 >= 0.0):
         raise ValueError(f"accel_psd_m2ps3 must be a finite number >= 0, got {accel_psd_m2ps3}")
+    if rng is None and accel_psd_m2ps3 > 0.0:
+        raise ValueError("process_noise_control needs an rng for a nonzero accel_psd_m2ps3")
     m = len(fixes)
     noise = np.asarray(noise, dtype=float)
     if noise.shape != (m, 6):
@@ -196,7 +164,7 @@ def process_noise_control(
             q[0:3, 3:6] = q[3:6, 0:3] = eye3 * (accel_psd_m2ps3 * dt**2 / 2.0)
             q[3:6, 3:6] = eye3 * (accel_psd_m2ps3 * dt)
             truth = f @ truth
-            if accel_psd_m2ps3 > 0.0:
+            if rng is not None and accel_psd_m2ps3 > 0.0:
                 truth = truth + np.linalg.cholesky(q) @ rng.standard_normal(6)
             if x is not None:
                 x, p = kf_predict(x, p, f, q)

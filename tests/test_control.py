@@ -64,68 +64,42 @@ def test_control_equals_the_batch_least_squares_fit():
         assert c.nees_vel[k] == pytest.approx(vel, rel=1e-9), k
 
 
-def test_control_nees_is_chi_square():
-    """400 draws of white fixes at the stated accuracies (fixed seed): at the first,
-    a middle and the last fix the NEES summed over draws lies between the 0.001
-    and 0.999 chi-square quantiles with 3 x 400 dof, both blocks."""
+@pytest.mark.parametrize(
+    "psd, runs, duration_s, ks",
+    [(0.0, 400, 20.0, (0, 100, 199)), (1e-3, 200, 30.0, (0, 150, 299))],
+    ids=["perfect-array", "process-noise"],
+)
+def test_control_nees_is_chi_square(psd, runs, duration_s, ks):
+    """Draws of white fixes at the stated accuracies (fixed seeds), the control's own
+    truth driven by white acceleration of ``psd`` m^2/s^3 (none: the perfect-array
+    control): at the first, a middle and the last fix the NEES summed over draws lies
+    between the 0.001 and 0.999 chi-square quantiles with 3 x runs dof, both blocks."""
     rng = np.random.default_rng(11)
-    t = np.arange(0.0, 20.0, 0.1)
+    t = np.arange(0.0, duration_s, 0.1)
     sig = np.array([1.5, 1.5, 3.0, 0.1, 0.1, 0.1])
     fixes = _fixes(t)
-    runs = 400
     pos = np.empty((runs, t.shape[0]))
     vel = np.empty((runs, t.shape[0]))
     for i in range(runs):
-        c = perfect_array_control(fixes, rng.standard_normal((t.shape[0], 6)) * sig)
+        noise = rng.standard_normal((t.shape[0], 6)) * sig
+        if psd:
+            c = process_noise_control(fixes, noise, np.random.default_rng([7, i]), psd)
+        else:
+            c = perfect_array_control(fixes, noise)
         pos[i], vel[i] = c.nees_pos, c.nees_vel
     lo, hi = chi2.ppf([0.001, 0.999], 3 * runs)
-    for k in (0, 100, t.shape[0] - 1):
+    for k in ks:
         for block in (pos, vel):
             assert lo < block[:, k].sum() < hi, (k, block[:, k].mean())
 
 
-def test_process_noise_control_without_noise_is_the_perfect_array_control():
-    """With a zero acceleration PSD the control's truth stays put and it is
-    :func:`perfect_array_control` to rounding, through an outage and a skipped fix."""
-    rng = np.random.default_rng(5)
-    t = np.concatenate([np.arange(0, 4, 0.2), np.arange(34, 38, 0.2)])
-    sig = np.array([1.5, 1.5, 3.0, 0.1, 0.1, 0.1])
-    noise = rng.standard_normal((t.shape[0], 6)) * sig
-    skip = np.zeros(t.shape[0], dtype=bool)
-    skip[7] = True
-    a = perfect_array_control(_fixes(t), noise, skip)
-    b = process_noise_control(_fixes(t), noise, np.random.default_rng(0), 0.0, skip)
-    np.testing.assert_allclose(b.nees_pos, a.nees_pos, rtol=1e-9)
-    np.testing.assert_allclose(b.nees_vel, a.nees_vel, rtol=1e-9)
-
-
-def test_process_noise_control_nees_is_chi_square():
-    """200 draws (fixed seeds) at 10 Hz with a 1e-3 m^2/s^3 acceleration PSD: at a middle
-    and the last fix the NEES summed over draws lies between the 0.001 and 0.999
-    chi-square quantiles with 3 x 200 dof, both blocks."""
-    rng = np.random.default_rng(12)
-    t = np.arange(0.0, 30.0, 0.1)
-    sig = np.array([1.5, 1.5, 3.0, 0.1, 0.1, 0.1])
-    fixes = _fixes(t)
-    runs = 200
-    pos = np.empty((runs, t.shape[0]))
-    vel = np.empty((runs, t.shape[0]))
-    for i in range(runs):
-        c = process_noise_control(
-            fixes, rng.standard_normal((t.shape[0], 6)) * sig, np.random.default_rng([7, i])
-        )
-        pos[i], vel[i] = c.nees_pos, c.nees_vel
-    lo, hi = chi2.ppf([0.001, 0.999], 3 * runs)
-    for k in (150, t.shape[0] - 1):
-        for block in (pos, vel):
-            assert lo < block[:, k].sum() < hi, (k, block[:, k].mean())
-
-
-def test_process_noise_control_rejects_a_bad_psd():
+def test_process_noise_control_rejects_a_bad_psd_or_a_missing_rng():
     with pytest.raises(ValueError, match="accel_psd_m2ps3"):
         process_noise_control(
             _fixes(np.arange(5.0)), np.zeros((5, 6)), np.random.default_rng(0), float("nan")
         )
+    with pytest.raises(ValueError, match="needs an rng"):
+        process_noise_control(_fixes(np.arange(5.0)), np.zeros((5, 6)), None, 1e-3)
 
 
 def test_fix_noise_recovers_the_receivers_draws():
