@@ -384,9 +384,13 @@ def _control_blocks(
     over the runs, from ``from_s`` s on, as :func:`_block` summarises a block (with
     ``reference``, the consistent-filter share too: a check of that reference on a
     statistic that is chi-square by construction); ``pos-pn`` and ``vel-pn`` are the
-    control with process noise (:func:`filters.control.process_noise_control`)."""
+    control with process noise (:func:`filters.control.process_noise_control`), present
+    when every run carries it."""
     out = {}
-    for name in ("pos", "vel", "pos-pn", "vel-pn"):
+    names = ["pos", "vel"] + [
+        k for k in ("pos-pn", "vel-pn") if all(f"control_{k}" in r for r in rs)
+    ]
+    for name in names:
         key = f"control_{name}"
         per_run = [r[key] if from_s is None else r[key][r["control_t_s"] >= from_s] for r in rs]
         out[name] = _block(per_run, 3, runs, reference)[0]

@@ -24,6 +24,8 @@ def _result(run: int, pos_nees: np.ndarray) -> dict:
         "rate_dim": 0,
         "control_pos": np.full(n, 3.0),
         "control_vel": np.full(n, 3.0),
+        "control_pos-pn": np.full(n, 3.0),
+        "control_vel-pn": np.full(n, 3.0),
         "control_t_s": t,
     }
 
@@ -45,6 +47,10 @@ def test_each_set_is_judged_on_its_own_runs_and_bounds():
     assert 30.0 > chi2_bounds(3, 2)[1]
     assert rows[1]["share_inside"]["NEES pos"] == 0.5
     assert rows[0]["share_inside"]["NIS gps pos"] == 1.0
+    assert rows[1]["control_share_inside"] == {"pos": 1.0, "vel": 1.0, "pos-pn": 1.0, "vel-pn": 1.0}
+    for r in results:  # runs without the process-noise control: the perfect-array one alone
+        del r["control_pos-pn"], r["control_vel-pn"]
+    rows = set_shares(results, {"pos": 3}, per_set=3, sets=3)
     assert rows[1]["control_share_inside"] == {"pos": 1.0, "vel": 1.0}
     assert "share_inside" not in rows[2]
 
