@@ -76,9 +76,8 @@ FORECAST_ERROR_GATE = 2.0
 #: is in updates at this rate; elsewhere ``filter.vehicle_model_rate_hz`` (this by
 #: default), Hz.
 SIDESLIP_RATE_HZ = 5.0
-#: The lift law's load, extrapolated from two block means to the block end:
-#: ``1.5 f_k - 0.5 f_k-1`` (a mean lags its block's end by half a block).
-LOAD_W_NOW, LOAD_W_PREV = 1.5, -0.5
+
+
 #: GPS velocities rejected in a row after which the vehicle model (sideslip and angle
 #: of attack) pauses until one is accepted again. A state the velocity fixes contradict
 #: has a covariance that no longer describes its errors, and a tight constraint fused
@@ -88,6 +87,35 @@ LOAD_W_NOW, LOAD_W_PREV = 1.5, -0.5
 MODEL_PAUSE_AFTER_VELOCITY_REJECTS = 2
 #: Horizontal speed above which a GPS course can set the heading, m/s.
 COURSE_MIN_SPEED_MPS = 5.0
+
+
+def load_extrapolation_weights(k_now: int, k_prev: int) -> tuple[float, float]:
+    """Weights ``(w_now, w_prev)`` that take two consecutive block means to the block end.
+
+    A block of ``k_now`` samples ending at ``t_e`` (the filter's time) has its mean at
+    ``t_e - (k_now - 1) dt / 2``; the block before, of ``k_prev`` samples, at
+    ``t_e - k_now dt - (k_prev - 1) dt / 2``. The straight line through the two means,
+    evaluated at ``t_e``, is ``w_now f_k + w_prev f_k-1`` with ``w_now = 1 + L``,
+    ``w_prev = -L``, ``L = (k_now - 1) / (k_now + k_prev)``: 1.45 and -0.45 for
+    ``tactical``'s blocks of 10 samples (1.5 / -0.5, the limit of long blocks, reaches
+    half a sample past the block end: 0.5 ms, and at the level-off's load rate the
+    angle of attack ran 0.6 sigma ahead of the truth in every run; design notes, "the
+    load's half-sample lead"). Exact for a load linear in time.
+
+    Parameters
+    ----------
+    k_now, k_prev : int
+        Samples in the current and the previous block (>= 1).
+
+    Returns
+    -------
+    tuple of float
+        ``(w_now, w_prev)``, summing to 1.
+    """
+    if k_now < 1 or k_prev < 1:
+        raise ValueError(f"block sizes must be >= 1, got {k_now} and {k_prev}")
+    lead = (k_now - 1) / (k_now + k_prev)
+    return 1.0 + lead, -lead
 
 
 @dataclass(frozen=True)
@@ -764,6 +792,7 @@ class Pipeline:
         self._t_last_slip = -np.inf
         self._f_load_prev: np.ndarray | None = None
         self._k_load_prev = 1  # samples measured in the block f_load_prev came from
+        self._kk_load_prev = 1  # that block's length in samples (its mean's time)
         self._sg_load_prev: np.ndarray | None = None  # that block's S G force rows
         self._load_noise_cov = nf.noise.feature_cov[3:6, 3:6].copy()
         self._t_last_reopen = -np.inf
@@ -987,7 +1016,8 @@ class Pipeline:
             self._last_mean[0:3] - nf.bias[0:3] - self._wd_smooth
         )
         if nf.layout.n_aoa:
-            # the block mean lags the block end by half a block: extrapolate it there
+            # the block mean lags the block end by (k - 1) / 2 samples: extrapolate it
+            # there (load_extrapolation_weights)
             # (measured: the lift law on tactical's 100 Hz block means was up to 0.07 deg
             # behind the truth in the roll-ins, exact on the block-end force)
             # (its noise: the block means' feature_cov / k, as the weights combine them)
@@ -1002,13 +1032,15 @@ class Pipeline:
             if self._f_load_prev is None:
                 f_load, w2, sg_load = f_mean, 1.0 / k_now, sg_f
             else:
-                f_load = LOAD_W_NOW * f_mean + LOAD_W_PREV * self._f_load_prev
-                w2 = LOAD_W_NOW**2 / k_now + LOAD_W_PREV**2 / self._k_load_prev
+                w_now, w_prev = load_extrapolation_weights(kk, self._kk_load_prev)
+                f_load = w_now * f_mean + w_prev * self._f_load_prev
+                w2 = w_now**2 / k_now + w_prev**2 / self._k_load_prev
                 sg_load = sg_f
                 if sg_f is not None and self._sg_load_prev is not None:
-                    sg_load = LOAD_W_NOW * sg_f + LOAD_W_PREV * self._sg_load_prev
+                    sg_load = w_now * sg_f + w_prev * self._sg_load_prev
             nf.set_load(f_load, load_cov=w2 * self._load_noise_cov, sg_f=sg_load)
             self._f_load_prev, self._k_load_prev = f_mean, k_now
+            self._kk_load_prev = kk
             self._sg_load_prev = sg_f
         fixes = []
         while self._pending and self._pending[0][0] == i1:

@@ -8,6 +8,7 @@ from hypothesis import strategies as st
 from scipy.stats import chi2
 
 from filters.ekf import FilterNoise, NavFilter, static_mean_walk_s
+from filters.pipeline import load_extrapolation_weights
 from filters.state import ATT, B_F, RATE, VEL
 from filters.vehicle_model import (
     ATTITUDE_REMAINDER_UPDATES,
@@ -1216,3 +1217,34 @@ def test_static_alignment_reads_the_biases_walk_over_its_mean():
     lo, hi = (float(chi2.ppf(q, 9 * draws) / draws) for q in (0.0005, 0.9995))
     assert lo <= _static_alignment_nees(True, draws, walk=True, read_walk=True) <= hi
     assert _static_alignment_nees(True, draws, walk=True) > hi
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    k_now=st.integers(1, 40),
+    k_prev=st.integers(1, 40),
+    slope=st.floats(-50.0, 50.0),
+    offset=st.floats(-30.0, 30.0),
+    dt=st.floats(1e-4, 1e-2),
+)
+def test_the_loads_weights_take_two_block_means_to_the_block_end(k_now, k_prev, slope, offset, dt):
+    """A load linear in time, sampled at ``dt`` over two consecutive blocks: the weighted
+    block means equal its value at the last sample (the filter's time), for any block
+    lengths; the weights sum to 1, and for equal blocks stay short of the long-block limit
+    1.5 / -0.5."""
+    t_e = 3.0
+    t_now = t_e - dt * np.arange(k_now)  # the current block's samples, ending at t_e
+    t_prev = t_e - dt * (k_now + np.arange(k_prev))  # the block before it
+    load = lambda t: offset + slope * t  # noqa: E731
+    w_now, w_prev = load_extrapolation_weights(k_now, k_prev)
+    got = w_now * load(t_now).mean() + w_prev * load(t_prev).mean()
+    assert got == pytest.approx(load(t_e), abs=1e-9 * (1.0 + abs(slope) + abs(offset)))
+    assert w_now + w_prev == pytest.approx(1.0)
+    assert -1.0 < w_prev <= 0.0
+    if k_now == k_prev:  # equal blocks: short of the long-block limit's 0.5
+        assert w_prev > -0.5
+
+
+def test_the_loads_weights_reject_empty_blocks():
+    with pytest.raises(ValueError, match="block sizes"):
+        load_extrapolation_weights(0, 10)
