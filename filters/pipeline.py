@@ -76,8 +76,6 @@ FORECAST_ERROR_GATE = 2.0
 #: is in updates at this rate; elsewhere ``filter.vehicle_model_rate_hz`` (this by
 #: default), Hz.
 SIDESLIP_RATE_HZ = 5.0
-
-
 #: GPS velocities rejected in a row after which the vehicle model (sideslip and angle
 #: of attack) pauses until one is accepted again. A state the velocity fixes contradict
 #: has a covariance that no longer describes its errors, and a tight constraint fused
@@ -99,8 +97,8 @@ def load_extrapolation_weights(k_now: int, k_prev: int) -> tuple[float, float]:
     ``w_prev = -L``, ``L = (k_now - 1) / (k_now + k_prev)``: 1.45 and -0.45 for
     ``tactical``'s blocks of 10 samples (1.5 / -0.5, the limit of long blocks, reaches
     half a sample past the block end: 0.5 ms, and at the level-off's load rate the
-    angle of attack ran 0.6 sigma ahead of the truth in every run; design notes, "the
-    load's half-sample lead"). Exact for a load linear in time.
+    angle of attack ran up to 0.6 sigma off the truth, the same way in every run;
+    design notes, "the load's half-sample lead"). Exact for a load linear in time.
 
     Parameters
     ----------
