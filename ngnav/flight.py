@@ -27,7 +27,9 @@ a real aircraft needs for the lift its flight path asks for:
 cos(phi)`` the exact wind-frame normal load (the pull-up's ``V theta_dot`` term
 included) and ``w(V)`` the lift-off blend (0 on the wheels). Its first and second
 derivatives, which the rate derivative needs, come from second-order jets of the
-profiles (a minimum-jerk profile's third derivative is exact too).
+profiles (a minimum-jerk profile's third derivative is exact too; where it jumps, at a
+ramp's start and end, a sample takes the mean of its one-sided limits: see
+:meth:`Profile.jerk`).
 
 Heading and position, the two integrals, come from three-point Gauss-Legendre
 quadrature of the same analytic derivatives over every sample interval (and,
@@ -66,11 +68,24 @@ class Transition:
     delta: float
 
 
-def _min_jerk_jerk(tau: np.ndarray) -> np.ndarray:
-    """Third derivative ``d3s/dtau3`` of :func:`~ngnav.motion.min_jerk_step` (0 outside [0, 1])."""
+#: Times within this of a ramp's start or end are on it, s (:meth:`Profile.jerk`): a
+#: sample time and a ramp end computed by different sums may differ by rounding.
+JUMP_TOLERANCE_S = 1e-9
+
+
+def _min_jerk_jerk(tau: np.ndarray, at_end: np.ndarray | None = None) -> np.ndarray:
+    """Third derivative ``d3s/dtau3`` of :func:`~ngnav.motion.min_jerk_step` (0 outside [0, 1]).
+
+    It jumps from 0 to 60 where the step starts and from 60 to 0 where it ends; where
+    ``at_end`` (bool, the shape of ``tau``) is set, the value is the mean of the two
+    one-sided limits, 30 (see :meth:`Profile.jerk`).
+    """
     x = np.asarray(tau, dtype=float)
     inside = (x >= 0.0) & (x <= 1.0)
-    return np.where(inside, 60.0 - 360.0 * x + 360.0 * x * x, 0.0)
+    out = np.where(inside, 60.0 - 360.0 * x + 360.0 * x * x, 0.0)
+    if at_end is not None:
+        out = np.where(at_end, 30.0, out)
+    return out
 
 
 @dataclass(frozen=True)
@@ -106,11 +121,29 @@ class Profile:
         return v, dv, ddv
 
     def jerk(self, t_s: np.ndarray) -> np.ndarray:
-        """Third time derivative at the times (T,) (one-sided at the ramp ends)."""
+        """Third time derivative at the times (T,).
+
+        A minimum-jerk ramp's jerk jumps where it starts and ends. At a time on such a
+        jump (within :data:`JUMP_TOLERANCE_S`) the value is the mean of the two one-sided
+        limits: what a symmetric (linear-phase) anti-alias filter reads at a step, and
+        the value whose trapezoid integral over the two neighbouring sample intervals is
+        exact. A one-sided value there makes the trapezoid of sampled values miss the
+        integral by half a sample interval times the jump, with the same sign in every
+        run, since the ramps of a flight start on the sample grid: the lift law's
+        angle of attack puts this jerk into the pitch acceleration, and ``tactical``'s
+        level-off (a 5 deg pitch ramp over 1 s) then left its pitch rate 1.14 mrad/s
+        off in every run (docs/filter-notes.md, "the pitch jerk's jumps on the sample
+        grid").
+        """
         t = np.asarray(t_s, dtype=float)
         out = np.zeros(t.shape)
         for tr in self.transitions:
-            out += tr.delta * _min_jerk_jerk((t - tr.start_s) / tr.duration_s) / tr.duration_s**3
+            end = tr.start_s + tr.duration_s
+            at_end = (np.abs(t - tr.start_s) <= JUMP_TOLERANCE_S) | (
+                np.abs(t - end) <= JUMP_TOLERANCE_S
+            )
+            jerk = _min_jerk_jerk((t - tr.start_s) / tr.duration_s, at_end)
+            out += tr.delta * jerk / tr.duration_s**3
         return out
 
 
