@@ -319,10 +319,10 @@ def test_consistency_small_monte_carlo(monte_carlo):
 @pytest.mark.xfail(
     strict=True,
     reason="known miss (README, 'Targets (issue 3)'): tactical's joint NEES at 50 runs, whole "
-    "run: pos / vel / att / rate / all / aoa 91.3 / 93.4 / 97.3 / 93.6 / 85.0 / 89.4 % "
-    "(runs 0-49 at bd36a53, the load extrapolated to the block end; 87.3 % joint at fcf694f; "
-    "uav-survey at bd36a53 meets every "
-    "block: 97.3 / 91.8 / 93.7 / 93.1 / 90.2 / 96.2 %, "
+    "run: pos / vel / att / rate / all / aoa 91.4 / 93.5 / 97.3 / 93.5 / 85.0 / 89.4 % "
+    "(runs 0-49 at 16899d2, the truth's jerk jumps sampled at their mean; 85.0 % joint at "
+    "bd36a53, 87.3 % at fcf694f; uav-survey at 16899d2 meets every "
+    "block: 97.4 / 91.8 / 93.7 / 93.1 / 90.3 / 96.3 %, "
     "runs 50-99 the joint 93.9 %; tactical's runs 50-99 and 100-149 meet every block, "
     "the joint 95.6 and 90.2 %; both at bd64fef). At this size (6 tactical runs) the "
     "whole run met it and from 10 s the position read 89.4 % (the control's draw, 81.4 %)",
