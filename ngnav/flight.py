@@ -73,19 +73,12 @@ class Transition:
 JUMP_TOLERANCE_S = 1e-9
 
 
-def _min_jerk_jerk(tau: np.ndarray, at_end: np.ndarray | None = None) -> np.ndarray:
-    """Third derivative ``d3s/dtau3`` of :func:`~ngnav.motion.min_jerk_step` (0 outside [0, 1]).
-
-    It jumps from 0 to 60 where the step starts and from 60 to 0 where it ends; where
-    ``at_end`` (bool, the shape of ``tau``) is set, the value is the mean of the two
-    one-sided limits, 30 (see :meth:`Profile.jerk`).
-    """
+def _min_jerk_jerk(tau: np.ndarray) -> np.ndarray:
+    """Third derivative ``d3s/dtau3`` of :func:`~ngnav.motion.min_jerk_step` (0 outside [0, 1];
+    it jumps to and from 60 at the ends, where :meth:`Profile.jerk` takes the mean)."""
     x = np.asarray(tau, dtype=float)
     inside = (x >= 0.0) & (x <= 1.0)
-    out = np.where(inside, 60.0 - 360.0 * x + 360.0 * x * x, 0.0)
-    if at_end is not None:
-        out = np.where(at_end, 30.0, out)
-    return out
+    return np.where(inside, 60.0 - 360.0 * x + 360.0 * x * x, 0.0)
 
 
 @dataclass(frozen=True)
@@ -142,7 +135,8 @@ class Profile:
             at_end = (np.abs(t - tr.start_s) <= JUMP_TOLERANCE_S) | (
                 np.abs(t - end) <= JUMP_TOLERANCE_S
             )
-            jerk = _min_jerk_jerk((t - tr.start_s) / tr.duration_s, at_end)
+            # on a jump: the mean of the one-sided limits 0 and 60
+            jerk = np.where(at_end, 30.0, _min_jerk_jerk((t - tr.start_s) / tr.duration_s))
             out += tr.delta * jerk / tr.duration_s**3
         return out
 
