@@ -43,9 +43,11 @@ drawings (``dr_i``, 0.5 mm per axis is typical) makes channel errors
 through the motion, so they act as a bias that changes with every manoeuvre;
 as white noise they leave the filter overconfident. Carried as states they are
 exact (linear in ``dr``) and estimated in flight: the in-flight part of the
-position calibration. The block is present when the configuration gives a
-nonzero position uncertainty (``position_sigma_m``) and ``filter.position_states``
-is on: where the motion keeps the scatter's channel error far below the noise
+position calibration. With a forecast compensation the forecast's history holds
+their effect ``S G dr`` in full, so its loop returns it as it returns a bias and the
+features carry ``T S G dr`` (:meth:`filters.ekf.NavFilter.geometry_jacobian`). The
+block is present when the configuration gives a nonzero position uncertainty
+(``position_sigma_m``) and ``filter.position_states`` is on: where the motion keeps the scatter's channel error far below the noise
 (``ngnav simulate`` prints both; ``uav-survey``), the states have nothing to learn
 and are left out.
 
@@ -56,7 +58,8 @@ along the wind-normal axis ``[-sin alpha, 0, cos alpha]`` (FRD) as zero, which
 ties the pitch to the flight path plus ``alpha``. With the airframe's lift law
 (``aoa_lift_k_m``) ``alpha = w(V) (alpha_b + K n_w / V^2)`` follows every change
 of load and speed the array measures, and the block holds the law's offset
-``alpha_b`` (a slow random walk, ``aoa_rw_deg_rts``) and, with
+``alpha_b`` (a constant of the airframe, or a slow random walk with
+``aoa_rw_deg_rts`` > 0) and, with
 ``aoa_lift_k_sigma_m``, the error of ``K`` (constant: mass, density and lift
 slope are never known exactly, and its effect grows with the load factor,
 which a random walk cannot describe). Without a law the state is ``alpha``
