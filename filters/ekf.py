@@ -61,8 +61,10 @@ from filters.vehicle_model import (
 )
 from ngnav.compensation import QUAD_PAIRS
 from ngnav.conventions import gravity_n_mps2
+from ngnav.errors import CovarianceError
 from ngnav.flight import quat_from_euler
 from ngnav.motion import min_jerk_step
+from ngnav.records import GpsUpdateResult
 from ngnav.rotation import (
     cross_rows,
     dcm_from_quat,
@@ -174,33 +176,6 @@ def static_mean_walk_s(dt_s: float, n_samples: int) -> float:
     return float(dt_s) * (n - 1) * (2 * n - 1) / (6.0 * n)
 
 
-class CovarianceError(RuntimeError):
-    """The covariance stopped being symmetric positive definite.
-
-    Attributes
-    ----------
-    partial : filters.pipeline.RunResult or None
-        What the run estimated before the failure, when the failure came out of
-        :func:`filters.pipeline.run_filter` after the filter had started (None
-        otherwise). It lets a comparison use the time before a divergence.
-    """
-
-    partial = None
-
-
-class LostTrackError(CovarianceError):
-    """The filter lost its tilt or rate again soon after it was reopened.
-
-    :meth:`NavFilter.reopen_attitude` is a recovery for a one-off loss (the end
-    of a long coast); needing it again within
-    ``filters.pipeline.REOPEN_MIN_INTERVAL_S`` means the estimates are not
-    coming back (a broken configuration, such as no compensation of a large
-    mounting error), and carrying on would report garbage with a covariance that
-    claims otherwise. It subclasses :class:`CovarianceError`, so whatever
-    handles a divergence handles this one (``partial`` included).
-    """
-
-
 @dataclass(frozen=True)
 class FilterNoise:
     """Noise model of the filter, in the solved-feature space.
@@ -275,19 +250,6 @@ class Counters:
     handover_model_updates: int = 0
     zero_rate_used: int = 0
     zero_rate_rejected: int = 0
-
-
-@dataclass
-class GpsUpdateResult:
-    """Innovation statistics of one fix: NIS of position and velocity, and acceptance."""
-
-    nis_pos: float
-    nis_vel: float
-    pos_accepted: bool
-    vel_accepted: bool
-    #: The position NIS split: horizontal (2 dof) and vertical (1 dof), before the update.
-    nis_pos_h: float = float("nan")
-    nis_pos_v: float = float("nan")
 
 
 @dataclass

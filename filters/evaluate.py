@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from filters.pipeline import Estimates
 from filters.state import NEES_BLOCKS
 from ngnav.flight import FlightTruth
+from ngnav.records import Estimates
 from ngnav.rotation import (
     dcm_from_quat,
     euler_from_quat,

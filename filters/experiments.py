@@ -13,7 +13,6 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from filters.control import CONTROL_SEED, fix_noise, perfect_array_control, process_noise_control
-from filters.ekf import CovarianceError
 from filters.evaluate import (
     TARGET_SHARE,
     ErrorSummary,
@@ -27,10 +26,12 @@ from filters.evaluate import (
     summarise,
 )
 from filters.gps_only import run_gps_only
-from filters.pipeline import RunResult, run_filter
+from filters.pipeline import run_filter
 from filters.share_reference import consistent_share
+from ngnav.errors import CovarianceError
 from ngnav.flight_scenario import FlightScenario
 from ngnav.geodesy import LocalTangentPlane
+from ngnav.records import RunResult
 from ngnav.simulate import SimulatedRun, simulate_flight
 
 #: The configurations of ``ngnav evaluate``, in table order.

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from filters.pipeline import Estimates
 from ngnav.geodesy import WGS84_A_M, WGS84_E2, LocalTangentPlane
+from ngnav.records import Estimates
 from ngnav.rotation import euler_from_quat
 from ngnav.runconfig import RunConfig
 from ngnav.runio import NAV_COLUMNS

@@ -22,32 +22,27 @@ is the filter's own rate estimate, so the compensation does not drift.
 from __future__ import annotations
 
 import bisect
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 
-from filters.ekf import (
-    CovarianceError,
-    FilterNoise,
-    LostTrackError,
-    NavFilter,
-    static_mean_walk_s,
-)
+from filters.ekf import FilterNoise, NavFilter, static_mean_walk_s
 from filters.rest import RestDetector
 from filters.state import ATT, POS, RATE, VEL
 from filters.updates import update_correlated
 from filters.vehicle_model import LATERAL, VERTICAL, BodyVelocityRecord
 from ngnav.compensation import _QUAD_I, _QUAD_J
 from ngnav.conventions import G0_MPS2
+from ngnav.errors import CovarianceError, LostTrackError
 from ngnav.flight import FlightTruth, quat_from_euler
 from ngnav.frontend import ArraySolver
 from ngnav.geodesy import LocalTangentPlane
 from ngnav.gps import GpsFixes
 from ngnav.layout import ArrayLayout, kinematic_features, rate_quadratics
 from ngnav.predictors import GreyPredictor, LastValuePredictor, LinePredictor, noise_gain
-from ngnav.records import ArraySamples, freeze_fields
+from ngnav.records import ArraySamples, Estimates, GpsInnovations, NavEstimate, RunResult
 from ngnav.rotation import dcm_from_quat, euler_from_quat
 from ngnav.runconfig import RunConfig
 
@@ -114,74 +109,6 @@ def load_extrapolation_weights(k_now: int, k_prev: int) -> tuple[float, float]:
         raise ValueError(f"block sizes must be >= 1, got {k_now} and {k_prev}")
     lead = (k_now - 1) / (k_now + k_prev)
     return 1.0 + lead, -lead
-
-
-@dataclass(frozen=True)
-class Estimates:
-    """Filter output at every block end (E epochs).
-
-    Attributes
-    ----------
-    t_s : array (E,)
-    pos_ned_m, vel_ned_mps, omega_b_rps : arrays (E, 3)
-    q_nb : array (E, 4)
-    bias : array (E, k)
-        Feature-bias estimates ``[wdot(3), f(3), quad(nq)]``.
-    cov_nav : array (E, 12, 12)
-        Covariance of the navigation error states (position, velocity,
-        attitude (NED), rate), see :mod:`filters.state`.
-    bound_nav : array (E, 12, 12) or None
-        The same filter's covariance linearised at the truth (simulations).
-    aoa_rad, aoa_sigma_rad : arrays (E,) or None
-        The angle-of-attack estimate and its 1-sigma, rad, when the filter carries
-        it (``filter.aoa_prior_sigma_deg`` > 0).
-    """
-
-    t_s: np.ndarray
-    pos_ned_m: np.ndarray
-    vel_ned_mps: np.ndarray
-    q_nb: np.ndarray
-    omega_b_rps: np.ndarray
-    bias: np.ndarray
-    cov_nav: np.ndarray
-    bound_nav: np.ndarray | None = None
-    aoa_rad: np.ndarray | None = None
-    aoa_sigma_rad: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        freeze_fields(
-            self,
-            {"t_s": (), "pos_ned_m": (3,), "vel_ned_mps": (3,), "q_nb": (4,), "omega_b_rps": (3,)},
-        )
-
-
-@dataclass(frozen=True)
-class GpsInnovations:
-    """Innovation statistics of every fix the filter saw (M,)."""
-
-    t_s: np.ndarray
-    nis_pos: np.ndarray
-    nis_vel: np.ndarray
-    pos_accepted: np.ndarray
-    vel_accepted: np.ndarray
-
-
-@dataclass(frozen=True)
-class RunResult:
-    """Estimates, GPS innovations, rate-measurement NIS and the run's counters.
-
-    ``rate_dim`` is the rate measurement's size, ``state_size`` the error state's;
-    ``rate_nis_t_s`` holds the time of each ``rate_nis`` value (s).
-    """
-
-    estimates: Estimates
-    innovations: GpsInnovations
-    rate_nis: np.ndarray
-    counts: dict[str, int]
-    compensation: str
-    rate_dim: int = field(default=3)
-    state_size: int = 0
-    rate_nis_t_s: np.ndarray | None = None
 
 
 def _predictor(name: str, window: int, shift: np.ndarray):
@@ -293,8 +220,8 @@ class Pipeline:
     One block at a time: the compensation's forecast, the nominal propagation,
     the covariance prediction, the rate-product update, the GPS fixes that fall
     in the block (at their time of validity), the sideslip model, the checks.
-    Estimates are recorded at every block end; ``on_epoch(pipeline)`` is called
-    after each (the MAVLink output reads :attr:`nf` and :attr:`last_gps` there).
+    Estimates are recorded at every block end as a :class:`ngnav.records.NavEstimate`
+    (:attr:`latest`); ``on_epoch(record)`` is called with each.
 
     Inputs may arrive in any interleaving (a live link delivers a fix
     ``latency`` after its time of validity): the filter's fusion horizon runs
@@ -319,7 +246,7 @@ class Pipeline:
     compensation, use_gps, true_layout, truth, bound
         As for :func:`run_filter`.
     on_epoch : callable, optional
-        Called with the pipeline after every recorded epoch.
+        Called with the :class:`ngnav.records.NavEstimate` of every recorded epoch.
     keep_estimates : bool
         Keep every epoch for :meth:`result` (False for an endless live link:
         :meth:`result` then holds the latest epoch only).
@@ -422,7 +349,9 @@ class Pipeline:
         #: bias estimates less its forecast, (6,): the forecast's error plus noise (NaN
         #: without a forecast compensation or before the first block).
         self.last_forecast_error = np.full(6, np.nan)
-        self._rec: list[tuple] = []
+        #: The latest epoch's record (None before the first).
+        self.latest: NavEstimate | None = None
+        self._rec: list[NavEstimate] = []
         self._inn: list[tuple] = []
         self._rate_nis: list[float] = []
         self._rate_nis_t: list[float] = []
@@ -876,11 +805,10 @@ class Pipeline:
 
     def _record(self) -> None:
         nf = self.nf
-        pb = self._p_bound[:12, :12].copy() if self._p_bound is not None else None
+        pb = self._p_bound[:12, :12] if self._p_bound is not None else None
         self.n_epochs += 1
         if not self.keep_estimates:
             self._rec.clear()
-        aoa = (nf.aoa, nf.aoa_sigma) if nf.layout.n_aoa else None
         p12 = nf.P[:12, :12].copy()
         vel = nf.vel
         if nf.in_body_frame():
@@ -888,7 +816,33 @@ class Pipeline:
             mc, cc = nf.velocity_curvature()
             vel = vel + mc
             p12[VEL, VEL] += cc
-        self._rec.append((nf.t_s, nf.pos, vel, nf.q, nf.w, nf.bias, p12, pb, aoa))
+        aoa = (nf.aoa, nf.aoa_sigma) if nf.layout.n_aoa else (None, None)
+        c = nf.counters
+        est = NavEstimate(
+            nf.t_s,
+            nf.pos,
+            vel,
+            nf.q,
+            nf.w,
+            nf.bias,
+            p12,
+            pb,
+            *aoa,
+            last_gps=self.last_gps,
+            t_last_position_fix_s=nf.t_last_position_fix,
+            resets=c.gps_resets + c.gps_gap_resets,
+            rate_innovation=nf.last_rate_innovation,
+            rate_nis=self.last_rate_nis,
+            rate_rejected=bool(self.last_rate_nis > nf.gate_q),
+            forecast_fallback=bool(self.block_fallbacks),
+            forecast_fallbacks=self.n_fallbacks,
+            held_samples=self.counts["samples held (non-finite)"]
+            + self.counts["samples held (saturated)"],
+            rate_updates_rejected=c.rate_rejected,
+            faulty_channels=self.block_faulty,
+        )
+        self.latest = est
+        self._rec.append(est)
 
     def _block(self, i1: int) -> None:
         nf = self.nf
@@ -1087,7 +1041,7 @@ class Pipeline:
             self._next_grid += self._k_reg
         self._record()
         if self.on_epoch is not None:
-            self.on_epoch(self)
+            self.on_epoch(self.latest)
 
     def _forecast_noise(self, d: np.ndarray, n_ok: int, t_s: float) -> None:
         """Add the error the compensation's forecast left in this block (the forecast's error).
@@ -1197,24 +1151,7 @@ class Pipeline:
         if not self.started:
             raise ValueError("the filter has not started: no estimates")
         nf = self.nf
-        rec = self._rec
-        cov = np.array([r[6] for r in rec])
-        bnd = np.array([r[7] for r in rec]) if self._p_bound is not None else None
-        estimates = Estimates(
-            np.array([r[0] for r in rec]),
-            np.array([r[1] for r in rec]),
-            np.array([r[2] for r in rec]),
-            np.array([r[3] for r in rec]),
-            np.array([r[4] for r in rec]),
-            np.array([r[5] for r in rec]),
-            cov,
-            bnd,
-            *(
-                (np.array([r[8][0] for r in rec]), np.array([r[8][1] for r in rec]))
-                if rec and rec[0][8] is not None
-                else (None, None)
-            ),
-        )
+        estimates = Estimates.stack(self._rec)
         inn = np.array([r[0:3] for r in self._inn], dtype=float).reshape(-1, 3)
         acc = np.array([r[3:5] for r in self._inn], dtype=bool).reshape(-1, 2)
         innovations = GpsInnovations(inn[:, 0], inn[:, 1], inn[:, 2], acc[:, 0], acc[:, 1])

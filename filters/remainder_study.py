@@ -40,7 +40,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from filters.ekf import CovarianceError
 from filters.evaluate import truth_aoa_rad, truth_indices
 from filters.pipeline import run_filter
 from filters.vehicle_model import (
@@ -50,6 +49,7 @@ from filters.vehicle_model import (
     attitude_product_matrix,
     constraint_axes,
 )
+from ngnav.errors import CovarianceError
 from ngnav.flight import FlightTruth
 from ngnav.flight_scenario import FlightScenario
 from ngnav.rotation import dcm_from_quat, quat_conjugate, quat_multiply, quat_to_rotvec, skew

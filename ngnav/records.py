@@ -6,7 +6,7 @@ without defensive copies downstream.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -122,3 +122,186 @@ class ArrayKinematics:
                 "rate_squares_rps2": (3,),
             },
         )
+
+
+@dataclass(frozen=True)
+class GpsUpdateResult:
+    """Innovation statistics of one GPS fix: NIS of position and velocity, and acceptance.
+
+    ``nis_pos_h`` and ``nis_pos_v`` split the position NIS into horizontal (2 dof) and
+    vertical (1 dof), before the update.
+    """
+
+    nis_pos: float
+    nis_vel: float
+    pos_accepted: bool
+    vel_accepted: bool
+    nis_pos_h: float = float("nan")
+    nis_pos_v: float = float("nan")
+
+
+@dataclass(frozen=True)
+class NavEstimate:
+    """One epoch of a navigation filter: state, covariance, health (what outputs read).
+
+    Attributes
+    ----------
+    t_s : float
+        Epoch time, run clock, s.
+    pos_ned_m, vel_ned_mps : array (3,)
+        Position and velocity of the array's reference point, NED from the run's
+        origin, m and m/s (the velocity a user reads, second-order mean included).
+    q_nb : array (4,)
+        Attitude, Hamilton scalar-first, body (FRD) to NED.
+    omega_b_rps : array (3,)
+        Body rate, FRD, rad/s.
+    bias : array (k,)
+        Feature-bias estimates ``[wdot(3), f(3), quad(nq)]``.
+    cov_nav : array (12, 12)
+        Covariance of the navigation errors (position, velocity, attitude as a NED
+        small angle, rate), in that order (:mod:`filters.state`).
+    bound_nav : array (12, 12) or None
+        The same filter's covariance linearised at the truth (simulations only).
+    aoa_rad, aoa_sigma_rad : float or None
+        The angle-of-attack estimate and its 1-sigma when the filter carries it.
+    last_gps : GpsUpdateResult or None
+        The last GPS fix's innovation statistics (None before the first).
+    t_last_position_fix_s : float
+        Time of the last accepted GPS position, s.
+    resets : int
+        Times the filter was put back on a GPS fix (after rejections or an outage).
+    rate_innovation : array (nq,)
+        The last rate-product innovation, rad^2/s^2.
+    rate_nis : float
+        Its NIS (NaN when the block had no rate update).
+    rate_rejected : bool
+        The last rate update failed its gate.
+    forecast_fallback : bool
+        This block's GM(1,1) forecast fell back to the last value.
+    forecast_fallbacks : int
+        GM(1,1) forecasts fallen back so far.
+    held_samples : int
+        Array samples held so far (non-finite or saturated).
+    rate_updates_rejected : int
+        Rate updates rejected by their gate so far.
+    faulty_channels : int
+        Bit ``i`` set: channel ``i`` was invalid or saturated in this block.
+    """
+
+    t_s: float
+    pos_ned_m: np.ndarray
+    vel_ned_mps: np.ndarray
+    q_nb: np.ndarray
+    omega_b_rps: np.ndarray
+    bias: np.ndarray
+    cov_nav: np.ndarray
+    bound_nav: np.ndarray | None = None
+    aoa_rad: float | None = None
+    aoa_sigma_rad: float | None = None
+    last_gps: GpsUpdateResult | None = None
+    t_last_position_fix_s: float = float("-inf")
+    resets: int = 0
+    rate_innovation: np.ndarray | None = None
+    rate_nis: float = float("nan")
+    rate_rejected: bool = False
+    forecast_fallback: bool = False
+    forecast_fallbacks: int = 0
+    held_samples: int = 0
+    rate_updates_rejected: int = 0
+    faulty_channels: int = 0
+
+    def __post_init__(self) -> None:
+        shapes = {"pos_ned_m": (3,), "vel_ned_mps": (3,), "q_nb": (4,), "omega_b_rps": (3,)}
+        shapes |= {"bias": (), "cov_nav": (12, 12)}
+        if self.bound_nav is not None:
+            shapes["bound_nav"] = (12, 12)
+        if self.rate_innovation is not None:
+            shapes["rate_innovation"] = ()
+        freeze_fields(self, shapes)
+
+
+@dataclass(frozen=True)
+class Estimates:
+    """A filter's estimates at every epoch (E epochs), stacked.
+
+    Attributes
+    ----------
+    t_s : array (E,)
+    pos_ned_m, vel_ned_mps, omega_b_rps : arrays (E, 3)
+    q_nb : array (E, 4)
+    bias : array (E, k)
+        Feature-bias estimates ``[wdot(3), f(3), quad(nq)]``.
+    cov_nav : array (E, 12, 12)
+        Covariance of the navigation error states (position, velocity,
+        attitude (NED), rate), see :mod:`filters.state`.
+    bound_nav : array (E, 12, 12) or None
+        The same filter's covariance linearised at the truth (simulations).
+    aoa_rad, aoa_sigma_rad : arrays (E,) or None
+        The angle-of-attack estimate and its 1-sigma, rad, when the filter carries it.
+    """
+
+    t_s: np.ndarray
+    pos_ned_m: np.ndarray
+    vel_ned_mps: np.ndarray
+    q_nb: np.ndarray
+    omega_b_rps: np.ndarray
+    bias: np.ndarray
+    cov_nav: np.ndarray
+    bound_nav: np.ndarray | None = None
+    aoa_rad: np.ndarray | None = None
+    aoa_sigma_rad: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        freeze_fields(
+            self,
+            {"t_s": (), "pos_ned_m": (3,), "vel_ned_mps": (3,), "q_nb": (4,), "omega_b_rps": (3,)},
+        )
+
+    @classmethod
+    def stack(cls, epochs: list[NavEstimate]) -> Estimates:
+        """The records of consecutive epochs as one :class:`Estimates`."""
+        if not epochs:
+            raise ValueError("no estimates to stack")
+        aoa = epochs[0].aoa_rad is not None
+        bound = epochs[0].bound_nav is not None
+        return cls(
+            np.array([e.t_s for e in epochs]),
+            np.array([e.pos_ned_m for e in epochs]),
+            np.array([e.vel_ned_mps for e in epochs]),
+            np.array([e.q_nb for e in epochs]),
+            np.array([e.omega_b_rps for e in epochs]),
+            np.array([e.bias for e in epochs]),
+            np.array([e.cov_nav for e in epochs]),
+            np.array([e.bound_nav for e in epochs]) if bound else None,
+            np.array([e.aoa_rad for e in epochs]) if aoa else None,
+            np.array([e.aoa_sigma_rad for e in epochs]) if aoa else None,
+        )
+
+
+@dataclass(frozen=True)
+class GpsInnovations:
+    """Innovation statistics of every fix the filter saw (M,)."""
+
+    t_s: np.ndarray
+    nis_pos: np.ndarray
+    nis_vel: np.ndarray
+    pos_accepted: np.ndarray
+    vel_accepted: np.ndarray
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """Estimates, GPS innovations, rate-measurement NIS and the run's counters.
+
+    ``rate_dim`` is the rate measurement's size, ``state_size`` the error state's;
+    ``rate_nis_t_s`` holds the time of each ``rate_nis`` value (s).
+    """
+
+    estimates: Estimates
+    innovations: GpsInnovations
+    rate_nis: np.ndarray
+    counts: dict[str, int]
+    compensation: str
+    rate_dim: int = field(default=3)
+    state_size: int = 0
+    rate_nis_t_s: np.ndarray | None = None

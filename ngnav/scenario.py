@@ -8,7 +8,9 @@ the CLI's ``--set``) are applied before validation.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import tomllib
+from collections.abc import Iterable
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -134,6 +136,12 @@ def _coerce(value: Any, kind: Any, where: str) -> Any:
     raise TypeError(f"{where}: unsupported field type {kind}")
 
 
+def unknown_name(what: str, name: str, known: Iterable[str]) -> str:
+    """``unknown key filter.rate_hzz (did you mean filter.rate_hz?)``: the nearest known name."""
+    near = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    return f"unknown {what} {name}" + (f" (did you mean {near[0]}?)" if near else "")
+
+
 def _build(cls: type, table: Any, section: str, source: str) -> Any:
     if not isinstance(table, dict):
         raise ValueError(f"{source}: [{section}] must be a table")
@@ -141,7 +149,8 @@ def _build(cls: type, table: Any, section: str, source: str) -> Any:
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(table) - set(fields))
     if unknown:
-        raise ValueError(f"{source}: unknown key {section}.{unknown[0]}")
+        known = (f"{section}.{k}" for k in fields)
+        raise ValueError(f"{source}: {unknown_name('key', f'{section}.{unknown[0]}', known)}")
     kwargs = {}
     for name, f in fields.items():
         if name not in table:
@@ -171,7 +180,10 @@ def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
         if not sep or not dot or not name:
             raise ValueError(f"override {item!r} must look like section.key=value")
         if section not in out or not isinstance(out[section], dict):
-            raise ValueError(f"{source}: override names unknown section [{section}]")
+            tables = [k for k, v in out.items() if isinstance(v, dict)]
+            raise ValueError(
+                f"{source}: override {item!r} names an {unknown_name('section', section, tables)}"
+            )
         out[section][name] = _parse_value(value.strip())
     return out
 

@@ -30,10 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from filters.pipeline import RunResult
+from ngnav.records import RunResult
 from ngnav.runconfig import RunConfig
 from telemetry.outputs import OutputSettings
-from telemetry.session import OutputFrame, StreamSession
+from telemetry.session import EstimatorFactory, OutputFrame, StreamSession
 from telemetry.tlog import tlog_record
 
 #: Largest datagram :func:`play_frames` builds from frames due together, bytes.
@@ -157,18 +157,20 @@ class ServeStats:
 def serve(
     source: Endpoint,
     dest: Endpoint,
+    make_estimator: EstimatorFactory,
     settings: OutputSettings | None = None,
     *,
     allow: set[tuple[int, int]] | None = None,
     duration_s: float | None = None,
     idle_exit_s: float | None = None,
-    keep_estimates: bool = False,
     out_tlog: str | Path | None = None,
     ready=None,
     busy_poll: bool = False,
 ) -> ServeStats:
     """Estimate from a live input link and send the estimates (see the module docstring).
 
+    ``make_estimator(config, on_epoch)`` builds the estimator once the link's
+    configuration has arrived (:class:`telemetry.session.StreamSession`).
     ``latency_s`` holds, for every datagram that produced estimate frames,
     the wall time from its arrival (``recvfrom`` returning) to its last
     estimate frame leaving ``sendto``. ``ready`` is called once the input
@@ -181,10 +183,7 @@ def serve(
             f"stream needs --in udpin:HOST:PORT and --out udpout:HOST:PORT, got {source} {dest}"
         )
     session = StreamSession(
-        settings,
-        allow=allow,
-        wall_clock=lambda: time.time_ns() // 1000,
-        keep_estimates=keep_estimates,
+        make_estimator, settings, allow=allow, wall_clock=lambda: time.time_ns() // 1000
     )
     rx = _socket()
     try:
@@ -274,5 +273,5 @@ def serve(
         result,
         session.failure,
         session.config,
-        session.pipeline.n_epochs if session.pipeline is not None else 0,
+        session.estimator.n_epochs if session.estimator is not None else 0,
     )

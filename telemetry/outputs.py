@@ -54,6 +54,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from ngnav.geodesy import LocalTangentPlane
+from ngnav.records import NavEstimate
 from ngnav.rotation import dcm_from_quat, euler_from_quat, skew
 from telemetry import ngnav_mavlink as mavlink
 
@@ -257,16 +258,17 @@ class EstimateEncoder:
         self.sent[name] += 1
         return True
 
-    def epoch(self, pipe, unix_usec: int | None = None) -> list[mavlink.MAVLink_message]:
-        """The messages due at the pipeline's latest epoch.
+    def epoch(
+        self, est: NavEstimate, unix_usec: int | None = None
+    ) -> list[mavlink.MAVLink_message]:
+        """The messages due at the epoch ``est``.
 
         ``unix_usec`` is SYSTEM_TIME's wall clock (None: the run clock on the
         tlog epoch base).
         """
         from telemetry.tlog import EPOCH_BASE_US
 
-        nf = pipe.nf
-        t_us = round(nf.t_s * 1e6)
+        t_us = round(est.t_s * 1e6)
         ms = _ms(t_us)
         out: list[mavlink.MAVLink_message] = []
         if self._due("heartbeat", t_us):
@@ -274,9 +276,9 @@ class EstimateEncoder:
         if self._due("system_time", t_us):
             unix = EPOCH_BASE_US + t_us if unix_usec is None else int(unix_usec)
             out.append(mavlink.MAVLink_system_time_message(unix, ms))
-        q = nf.q
-        w = nf.w
-        pos, vel = nf.pos, nf.vel
+        q = est.q_nb
+        w = est.omega_b_rps
+        pos, vel = est.pos_ned_m, est.vel_ned_mps
         rpy = euler_from_quat(q)
         if self._due("attitude_quaternion", t_us):
             out.append(
@@ -311,11 +313,11 @@ class EstimateEncoder:
                     hdg,
                 )
             )
-        cov = nf.P[:12, :12]
+        cov = est.cov_nav
         if self._due("odometry", t_us):
             pose, twist = odometry_covariances(q, vel, cov, rpy)
             v_b = dcm_from_quat(q).T @ vel
-            resets = nf.counters.gps_resets + nf.counters.gps_gap_resets
+            resets = est.resets
             out.append(
                 mavlink.MAVLink_odometry_message(
                     t_us,
@@ -333,14 +335,13 @@ class EstimateEncoder:
                 )
             )
         if self._due("estimator_status", t_us):
-            out.append(self._status(pipe, t_us, cov))
+            out.append(self._status(est, t_us, cov))
         if self._due("array_health", t_us):
-            out.append(self._health(pipe, t_us))
+            out.append(self._health(est, t_us))
         return out
 
-    def _status(self, pipe, t_us: int, cov: np.ndarray) -> mavlink.MAVLink_message:
-        nf = pipe.nf
-        g = pipe.last_gps
+    def _status(self, est: NavEstimate, t_us: int, cov: np.ndarray) -> mavlink.MAVLink_message:
+        g = est.last_gps
         flags = (
             mavlink.ESTIMATOR_ATTITUDE
             | mavlink.ESTIMATOR_VELOCITY_HORIZ
@@ -350,7 +351,7 @@ class EstimateEncoder:
             | mavlink.ESTIMATOR_PRED_POS_HORIZ_REL
             | mavlink.ESTIMATOR_PRED_POS_HORIZ_ABS
         )
-        aided = nf.t_s - nf.t_last_position_fix <= self._gap_s
+        aided = est.t_s - est.t_last_position_fix_s <= self._gap_s
         if aided:
             flags |= mavlink.ESTIMATOR_POS_HORIZ_ABS
         vel_r = pos_h = pos_v = 0.0
@@ -373,28 +374,27 @@ class EstimateEncoder:
             float(math.sqrt(max(0.0, cov[2, 2]))),
         )
 
-    def _health(self, pipe, t_us: int) -> mavlink.MAVLink_message:
-        nf = pipe.nf
+    def _health(self, est: NavEstimate, t_us: int) -> mavlink.MAVLink_message:
         res = np.zeros(3)
-        y = nf.last_rate_innovation
+        y = est.rate_innovation if est.rate_innovation is not None else np.zeros(0)
         res[: min(3, y.shape[0])] = y[:3]
         flags = mavlink.NGNAV_HEALTH_ALIGNED
-        if nf.t_s - nf.t_last_position_fix <= self._gap_s:
+        if est.t_s - est.t_last_position_fix_s <= self._gap_s:
             flags |= mavlink.NGNAV_HEALTH_GPS_AIDED
-        if pipe.last_rate_nis > nf.gate_q:
+        if est.rate_rejected:
             flags |= mavlink.NGNAV_HEALTH_RATE_REJECTED
-        if pipe.block_fallbacks:
+        if est.forecast_fallback:
             flags |= mavlink.NGNAV_HEALTH_FORECAST_FALLBACK
-        held = pipe.counts["samples held (non-finite)"] + pipe.counts["samples held (saturated)"]
-        nis = pipe.last_rate_nis
+        held = est.held_samples
+        nis = est.rate_nis
         return mavlink.MAVLink_ngnav_array_health_message(
             t_us,
             [float(x) for x in res],
             float(nis) if math.isfinite(nis) else float("nan"),
             min(held, 2**32 - 1),
-            min(nf.counters.rate_rejected, 2**32 - 1),
-            min(pipe.n_fallbacks, 2**32 - 1),
-            pipe.block_faulty & 0xFFFF,
+            min(est.rate_updates_rejected, 2**32 - 1),
+            min(est.forecast_fallbacks, 2**32 - 1),
+            est.faulty_channels & 0xFFFF,
             flags,
             self._comp,
         )

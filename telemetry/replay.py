@@ -13,12 +13,12 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from filters.pipeline import RunResult
+from ngnav.records import RunResult
 from ngnav.runconfig import RunConfig
 from telemetry.inputs import input_frames
 from telemetry.outputs import OutputSettings
 from telemetry.runfiles import RunInputs
-from telemetry.session import OutputFrame, StreamSession
+from telemetry.session import EstimatorFactory, OutputFrame, StreamSession
 from telemetry.tlog import FrameWriter, frames_of, read_tlog, tlog_record
 
 
@@ -60,27 +60,26 @@ def _run(session: StreamSession, feed: Iterable, out_tlog: Path | None) -> Repla
 
 def replay_tlog(
     path: str | Path,
+    make_estimator: EstimatorFactory,
     settings: OutputSettings | None = None,
     *,
     out_tlog: str | Path | None = None,
-    compensation: str | None = None,
-    keep_estimates: bool = True,
 ) -> ReplayResult:
-    """Run the filter over an input tlog; write the estimate frames to ``out_tlog``."""
-    session = StreamSession(settings, compensation=compensation, keep_estimates=keep_estimates)
+    """Run an estimator over an input tlog; write the estimate frames to ``out_tlog``."""
+    session = StreamSession(make_estimator, settings)
     feed = (("msg", msg) for _, msg in read_tlog(path, session.decoder))
     return _run(session, feed, Path(out_tlog) if out_tlog is not None else None)
 
 
 def replay_inputs(
     inp: RunInputs,
+    make_estimator: EstimatorFactory,
     settings: OutputSettings | None = None,
     *,
     out_tlog: str | Path | None = None,
-    compensation: str | None = None,
 ) -> ReplayResult:
     """Encode a run's inputs as frames (as ``simulate --out NAME.tlog`` would) and replay them."""
-    session = StreamSession(settings, compensation=compensation)
+    session = StreamSession(make_estimator, settings)
     frames = frames_of(input_frames(inp.samples, inp.fixes, inp.config), FrameWriter())
     feed = (("bytes", frame) for _, frame in frames)
     return _run(session, feed, Path(out_tlog) if out_tlog is not None else None)

@@ -3,9 +3,11 @@
 A :class:`StreamSession` takes input frames (a tlog's frames, or UDP
 datagrams), decodes them one frame at a time (:mod:`telemetry.frames`),
 assembles samples, fixes and the configuration (:mod:`telemetry.inputs`),
-runs the filter as a stream (:class:`filters.pipeline.Pipeline`) and encodes
-the estimates (:mod:`telemetry.outputs`). ``ngnav run RUN.tlog`` and
-``ngnav stream`` both use it, so the same input gives the same estimates.
+runs an estimator as a stream and encodes its estimates
+(:mod:`telemetry.outputs`). ``ngnav run RUN.tlog`` and ``ngnav stream`` both use
+it, so the same input gives the same estimates. The estimator is whatever the
+caller's factory builds from the run's configuration (:class:`Estimator`):
+telemetry knows records, not filters.
 
 Before the configuration (``NGNAV_CONFIG_TEXT``) is complete, samples and
 fixes are kept; the filter starts from them once it arrives. If the filter
@@ -18,12 +20,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
-from filters.ekf import CovarianceError
-from filters.pipeline import Pipeline, RunResult
+from ngnav.errors import CovarianceError
 from ngnav.geodesy import LocalTangentPlane
+from ngnav.records import NavEstimate, RunResult
 from ngnav.runconfig import RunConfig, read_run_config_text
 from telemetry import ngnav_mavlink as mavlink
 from telemetry.frames import FrameDecoder
@@ -41,40 +44,67 @@ class OutputFrame:
     name: str
 
 
+class Estimator(Protocol):
+    """What a session needs of an estimator: a stream of samples and fixes in, records out.
+
+    Built by the session's factory ``make(config, on_epoch)``, which must call
+    ``on_epoch`` with the :class:`ngnav.records.NavEstimate` of every epoch.
+    ``filters.pipeline.Pipeline`` is one.
+    """
+
+    n_channels: int
+    method: str
+    started: bool
+    n_epochs: int
+
+    def push_samples(self, t_s: np.ndarray, accel_mps2: np.ndarray) -> int: ...
+
+    def push_fix(self, t_s: float, lat_deg: float, lon_deg: float, alt_m: float,
+                 vel_ned_mps: tuple[float, float, float], h_acc_m: float, v_acc_m: float,
+                 speed_acc_mps: float) -> None: ...
+
+    def finish(self) -> int: ...
+
+    def result(self) -> RunResult: ...
+
+
+#: Builds an estimator from the run's configuration and the per-epoch callback.
+EstimatorFactory = Callable[[RunConfig, Callable[[NavEstimate], None]], Estimator]
+
+
 class StreamSession:
     """Decode inputs, run the filter, encode estimates.
 
     Parameters
     ----------
+    make_estimator : callable
+        ``make_estimator(config, on_epoch)`` builds the estimator once the
+        configuration has arrived (:data:`EstimatorFactory`); a ``ValueError`` from
+        it is a configuration the estimator refuses (counted, reported).
     settings : OutputSettings
         Output identity and rates.
     gps_defaults : GpsDefaults
         Accuracies for GPS messages that lack them.
     allow : set of (system id, component id), optional
         Accepted input sources (None: all).
-    compensation : str, optional
-        Override the configuration's compensation.
     wall_clock : callable, optional
         Returns UNIX microseconds for SYSTEM_TIME (live); None uses the run clock.
     on_frame : callable, optional
         Called with every :class:`OutputFrame` as it is produced; otherwise
         frames collect in :attr:`pending` for :meth:`take`.
-    keep_estimates : bool
-        Keep every epoch for the result (False for an endless live link).
     """
 
     def __init__(
         self,
+        make_estimator: EstimatorFactory,
         settings: OutputSettings | None = None,
         *,
         gps_defaults: GpsDefaults | None = None,
         allow: set[tuple[int, int]] | None = None,
-        compensation: str | None = None,
         wall_clock: Callable[[], int] | None = None,
         on_frame: Callable[[OutputFrame], None] | None = None,
-        keep_estimates: bool = True,
     ) -> None:
-        self.keep_estimates = keep_estimates
+        self.make_estimator = make_estimator
         self.settings = settings or OutputSettings()
         self.decoder = FrameDecoder(allow)
         self.counts = self.decoder.counts
@@ -85,12 +115,12 @@ class StreamSession:
             on_fix=self._fix,
             on_config=self._config,
         )
-        self.compensation = compensation
         self.wall_clock = wall_clock
         self.on_frame = on_frame
         self.writer = FrameWriter(self.settings.system_id, self.settings.component_id)
         self.config: RunConfig | None = None
-        self.pipeline: Pipeline | None = None
+        self.estimator: Estimator | None = None
+        self.latest: NavEstimate | None = None
         self.encoder: EstimateEncoder | None = None
         self.failure: str | None = None
         self.pending: list[OutputFrame] = []
@@ -109,14 +139,14 @@ class StreamSession:
     def finish(self) -> RunResult | None:
         """End of input: flush, finish the filter; its result (None if it never ran)."""
         self.assembler.finish()
-        if self.pipeline is None:
+        if self.estimator is None:
             if self.config is None:
                 self.failure = self.failure or "no complete NGNAV_CONFIG_TEXT configuration arrived"
             return None
         if self.failure is None:
-            self._guard(self.pipeline.finish)
-        if self.pipeline.started:
-            return self.pipeline.result()
+            self._guard(self.estimator.finish)
+        if self.estimator.started:
+            return self.estimator.result()
         return None
 
     def take(self) -> list[OutputFrame]:
@@ -128,13 +158,11 @@ class StreamSession:
         """A HEARTBEAT frame now (for a live link's idle seconds); state from the session."""
         if self.failure is not None:
             status = mavlink.MAV_STATE_CRITICAL
-        elif self.pipeline is not None and self.pipeline.started:
+        elif self.estimator is not None and self.estimator.started:
             status = mavlink.MAV_STATE_ACTIVE
         else:
             status = mavlink.MAV_STATE_STANDBY
-        t_us = 0
-        if self.pipeline is not None and self.pipeline.started:
-            t_us = round(self.pipeline.nf.t_s * 1e6)
+        t_us = 0 if self.latest is None else round(self.latest.t_s * 1e6)
         return OutputFrame(t_us, self.writer.pack(self.settings.heartbeat(status)), "HEARTBEAT")
 
     # ---------------------------------------------------------- plumbing
@@ -150,12 +178,7 @@ class StreamSession:
         if self.assembler.n_channels is None:
             self.assembler.n_channels = n
         try:
-            self.pipeline = Pipeline(
-                cfg,
-                compensation=self.compensation,
-                on_epoch=self._epoch,
-                keep_estimates=self.keep_estimates,
-            )
+            self.estimator = self.make_estimator(cfg, self._epoch)
         except ValueError as exc:
             self.failure = str(exc)
             self.counts.add("filter failed")
@@ -165,7 +188,7 @@ class StreamSession:
             LocalTangentPlane(cfg.lat0_deg, cfg.lon0_deg, cfg.alt0_m),
             cfg.filter.gate_probability,
             cfg.filter.gps_gap_reset_s,
-            self.pipeline.method,
+            self.estimator.method,
         )
         early, self._early = self._early, []
         for item in early:
@@ -175,24 +198,24 @@ class StreamSession:
                 self._fix(item[1], item[2])
 
     def _samples(self, t_us: np.ndarray, a: np.ndarray) -> None:
-        if self.pipeline is None:
+        if self.estimator is None:
             if self.failure is None:
                 self._early.append(("s", t_us, a))
             return
-        if a.shape[1] != self.pipeline.n_channels:
+        if a.shape[1] != self.estimator.n_channels:
             self.counts.add("wrong channel count", t_us.shape[0])
             return
         if self.failure is None:
-            self._guard(self.pipeline.push_samples, t_us * 1e-6, a)
+            self._guard(self.estimator.push_samples, t_us * 1e-6, a)
 
     def _fix(self, t_us: int, row: tuple[float, ...]) -> None:
-        if self.pipeline is None:
+        if self.estimator is None:
             if self.failure is None:
                 self._early.append(("f", t_us, row))
             return
         if self.failure is None:
             lat, lon, alt, vn, ve, vd, h, v, s = row
-            self._guard(self.pipeline.push_fix, t_us * 1e-6, lat, lon, alt, (vn, ve, vd), h, v, s)
+            self._guard(self.estimator.push_fix, t_us * 1e-6, lat, lon, alt, (vn, ve, vd), h, v, s)
 
     def _guard(self, fn, *args) -> None:
         try:
@@ -201,10 +224,11 @@ class StreamSession:
             self.failure = str(exc)
             self.counts.add("filter failed")
 
-    def _epoch(self, pipe: Pipeline) -> None:
+    def _epoch(self, est: NavEstimate) -> None:
+        self.latest = est
         unix = self.wall_clock() if self.wall_clock is not None else None
-        t_us = round(pipe.nf.t_s * 1e6)
-        for msg in self.encoder.epoch(pipe, unix):
+        t_us = round(est.t_s * 1e6)
+        for msg in self.encoder.epoch(est, unix):
             frame = OutputFrame(t_us, self.writer.pack(msg), msg.get_type())
             if self.on_frame is not None:
                 self.on_frame(frame)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from filters.ekf import CovarianceError, FilterNoise, NavFilter
+from filters.ekf import FilterNoise, NavFilter
 from filters.evaluate import chi2_bounds, run_errors, summarise, truth_aoa_rad, truth_indices
 from filters.experiments import (
     EvaluationRow,
@@ -21,6 +21,7 @@ from filters.experiments import (
     run_configuration,
 )
 from filters.pipeline import run_filter
+from ngnav.errors import CovarianceError
 from ngnav.flight_scenario import load_flight
 from ngnav.records import ArraySamples
 from ngnav.runconfig import read_run_config, write_run_config
@@ -666,7 +667,7 @@ def test_bias_states_tell_the_truth_through_the_forecasts_loop():
                     cov = nf.P[nf.layout.bias, nf.layout.bias][0:6, 0:6]
                     got[j] = float(err @ np.linalg.solve(cov, err))
 
-        pipe.on_epoch = record
+        pipe.on_epoch = lambda _est, pipe=pipe, record=record: record(pipe)
         _feed(pipe, samples, fixes, None)
         nees[i] = [got[j] for j in range(len(checks))]
     lo, hi = chi2.ppf([0.005, 0.995], 6 * runs) / runs

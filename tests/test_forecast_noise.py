@@ -94,7 +94,8 @@ def _forecast_errors(
             out_k.append(round((t - last["t"]) / p.dt))
         last["t"] = t
 
-    pipe = Pipeline(sim.config, on_epoch=grab)
+    pipe = Pipeline(sim.config)
+    pipe.on_epoch = lambda _est: grab(pipe)
     _feed(pipe, samples, fixes, None)
     d = np.array(out_d)
     return np.array(out_t), d * d * np.array(out_k)[:, None], pipe
@@ -150,7 +151,8 @@ def test_forecast_noise_grows_the_rate_covariance_in_a_roll_out_not_in_a_dive():
                 if tk not in seen and p.nf.t_s >= tk:
                     seen[tk] = float(np.trace(p.nf.P[RATE, RATE]))
 
-        pipe = Pipeline(cfg, on_epoch=grab)
+        pipe = Pipeline(cfg)
+        pipe.on_epoch = lambda _est, pipe=pipe, grab=grab: grab(pipe)
         _feed(pipe, sim.samples, sim.fixes, None)
         rate_var[persistence] = seen
     steady = rate_var[2.0][33.0] / rate_var[0.0][33.0]

@@ -221,7 +221,7 @@ def test_zero_rate_updates_fall_only_where_the_vehicle_stands():
     t = sim.samples.t_s
     pipe = Pipeline(sim.config, dt_s=float(np.median(np.diff(t))), truth=sim.truth)
     log = []
-    pipe.on_epoch = lambda p: log.append((p.nf.t_s, p.rest.at_rest))
+    pipe.on_epoch = lambda est: log.append((est.t_s, pipe.rest.at_rest))
     _feed(pipe, sim.samples, sim.fixes, None)
     t_ep = np.array([a for a, _ in log])
     at_rest = np.array([b for _, b in log])

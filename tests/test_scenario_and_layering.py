@@ -46,15 +46,40 @@ def test_shipped_table_matches_shared_data():
     )
 
 
-def test_core_never_imports_filters_or_telemetry():
-    for path in (ROOT / "ngnav").rglob("*.py"):
-        if path.name == "cli.py":
+def _imported_packages(path: Path) -> set[str]:
+    """Top-level names a module imports (anywhere in it, functions included)."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.add(node.module.split(".")[0])
+    return out
+
+
+#: The composition roots: the only core modules that wire filters and telemetry together.
+COMPOSITION_ROOTS = ("ngnav/cli", "ngnav/api.py")
+
+
+@pytest.mark.parametrize(
+    ("package", "forbidden"),
+    [("ngnav", {"filters", "telemetry"}), ("telemetry", {"filters"})],
+)
+def test_layers_import_in_one_direction(package, forbidden):
+    """core <- filters, telemetry; telemetry never imports filters; only the roots wire."""
+    bad = []
+    for path in sorted((ROOT / package).rglob("*.py")):
+        rel = path.relative_to(ROOT).as_posix()
+        if rel.startswith(COMPOSITION_ROOTS):
             continue
-        for node in ast.walk(ast.parse(path.read_text())):
-            names = []
-            if isinstance(node, ast.Import):
-                names = [a.name for a in node.names]
-            elif isinstance(node, ast.ImportFrom) and node.module:
-                names = [node.module]
-            for n in names:
-                assert n.split(".")[0] not in ("filters", "telemetry"), f"{path} imports {n}"
+        hit = _imported_packages(path) & forbidden
+        if hit:
+            bad.append(f"{rel} imports {sorted(hit)}")
+    assert not bad, "; ".join(bad)
+
+
+def test_layer_check_sees_a_violation(tmp_path):
+    """The check itself catches a function-level import (what a move tends to add)."""
+    f = tmp_path / "m.py"
+    f.write_text("def g():\n    from filters.pipeline import Pipeline\n    return Pipeline\n")
+    assert _imported_packages(f) == {"filters"}

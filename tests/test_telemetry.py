@@ -201,9 +201,10 @@ def test_cli_simulate_convert_and_run_a_tlog(tmp_path):
     # the CLI's tlog path is the library's stream replay: the same estimates, bit for bit
     from filters.output import write_estimates_csv
     from filters.pipeline import run_filter
+    from ngnav.api import pipeline_factory
     from telemetry.replay import replay_tlog
 
-    rr = replay_tlog(tl)
+    rr = replay_tlog(tl, pipeline_factory())
     write_estimates_csv(tmp_path / "lib.csv", rr.result.estimates, rr.config)
     b = np.loadtxt(tmp_path / "lib.csv", delimiter=",", skiprows=1)
     assert a.shape == b.shape and np.array_equal(a, b)

@@ -1,8 +1,4 @@
-"""The telemetry side of the ``ngnav`` command line: output options, ``stream``, replays.
-
-``ngnav.cli`` registers these; they are here so that the CLI module does not
-grow into a god-module and the MAVLink wiring stays beside the telemetry code.
-"""
+"""The MAVLink commands of ``ngnav``: output options, ``stream``, ``bench-stream``, replays."""
 
 from __future__ import annotations
 
@@ -90,6 +86,7 @@ def print_counts(title: str, counts: dict[str, int], indent: str = "  ") -> None
 def cmd_stream(args: argparse.Namespace) -> int:
     """``ngnav stream``: estimate from a live UDP link, send MAVLink estimates."""
     from filters.output import write_estimates_csv
+    from ngnav.api import pipeline_factory
     from telemetry.live import parse_endpoint, serve
 
     src = parse_endpoint(args.inp, "udpin")
@@ -102,11 +99,11 @@ def cmd_stream(args: argparse.Namespace) -> int:
     st = serve(
         src,
         dst,
+        pipeline_factory(keep_estimates=args.csv is not None),
         settings,
         allow=parse_allow(args.allow),
         duration_s=args.duration,
         idle_exit_s=args.idle_exit,
-        keep_estimates=args.csv is not None,
         out_tlog=args.tlog,
         ready=ready,
         busy_poll=args.busy_poll,
@@ -143,21 +140,27 @@ def cmd_stream(args: argparse.Namespace) -> int:
 
 
 def run_to_tlog(src: Path, out: Path, args: argparse.Namespace):
-    """``ngnav run SRC --out OUT.tlog``: replay through the stream path."""
+    """``ngnav run SRC --out OUT.tlog``: replay through the stream path.
+
+    The result's ``failure`` says why the filter stopped early (its frames up to
+    then are in the tlog); a filter that never started is a ``ValueError``.
+    """
+    from ngnav.api import pipeline_factory
     from telemetry.replay import replay_inputs, replay_tlog
     from telemetry.runfiles import is_tlog, read_run
 
     settings = output_settings(args)
+    make = pipeline_factory(args.compensation)
     if is_tlog(src):
-        rr = replay_tlog(src, settings, out_tlog=out, compensation=args.compensation)
+        rr = replay_tlog(src, make, settings, out_tlog=out)
         reports = {str(src): rr.counts}
     else:
         inp = read_run(src)
-        rr = replay_inputs(inp, settings, out_tlog=out, compensation=args.compensation)
+        rr = replay_inputs(inp, make, settings, out_tlog=out)
         reports = dict(inp.reports)
         reports["MAVLink"] = rr.counts
-    if rr.failure:
-        raise ValueError(f"{src}: the filter did not run through: {rr.failure}")
+    if rr.result is None:
+        raise ValueError(f"{src}: the filter did not run: {rr.failure}")
     return rr, reports
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Sequence
 
@@ -279,8 +280,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     from filters.evaluate import run_errors, summarise
     from filters.output import write_estimates_csv
     from filters.pipeline import run_filter
+    from ngnav.api import pipeline_factory
+    from ngnav.cli.stream import run_to_tlog
+    from ngnav.errors import CovarianceError
     from ngnav.runio import read_truth_csv
-    from telemetry.commands import run_to_tlog
     from telemetry.replay import replay_tlog
     from telemetry.runfiles import is_tlog, read_run, truth_path
 
@@ -291,25 +294,38 @@ def cmd_run(args: argparse.Namespace) -> int:
         out = src.with_suffix(".estimates.csv") if is_tlog(src) else src / "estimates.csv"
     if args.no_gps and (is_tlog(src) or is_tlog(out)):
         raise ValueError("--no-gps is for CSV runs; a tlog replay uses every input it holds")
+    if not src.exists():
+        raise ValueError(f"{src}: no such file or directory")
+    if not is_tlog(src) and not src.is_dir():
+        raise ValueError(f"{src} is not a run: give a directory (config.toml, array.csv, "
+                         "gps.csv) or a .tlog")
+    _check_writable(out)
+    failure = None
     if is_tlog(out):
         # estimates as MAVLink: through the stream path, as a live link would run
         rr, reports = run_to_tlog(src, out, args)
-        res, cfg = rr.result, rr.config
+        res, cfg, failure = rr.result, rr.config, rr.failure
         frames = sum(rr.frames_sent.values())
         print(f"run {src}: {res.estimates.t_s.shape[0]} estimates, {frames} frames -> {out}")
     elif is_tlog(src):
-        rr = replay_tlog(src, compensation=args.compensation)
+        rr = replay_tlog(src, pipeline_factory(args.compensation))
         if rr.result is None:
             raise ValueError(f"{src}: the filter did not run: {rr.failure}")
-        res, cfg, reports = rr.result, rr.config, {str(src): rr.counts}
+        res, cfg, failure = rr.result, rr.config, rr.failure
+        reports = {str(src): rr.counts}
         write_estimates_csv(out, res.estimates, cfg)
         print(f"run {src}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
     else:
         inp = read_run(src)
         cfg, reports = inp.config, inp.reports
-        res = run_filter(
-            inp.samples, inp.fixes, cfg, compensation=args.compensation, use_gps=not args.no_gps
-        )
+        try:
+            res = run_filter(
+                inp.samples, inp.fixes, cfg, compensation=args.compensation, use_gps=not args.no_gps
+            )
+        except CovarianceError as exc:
+            if exc.partial is None:
+                raise
+            res, failure = exc.partial, str(exc)
         write_estimates_csv(out, res.estimates, cfg)
         print(f"run {src}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
     _print_reports(reports)
@@ -321,7 +337,26 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"{s.vert_rms_m:.3f} m, roll/pitch/yaw RMS {s.roll_rms_deg:.3f}/"
             f"{s.pitch_rms_deg:.3f}/{s.yaw_rms_deg:.3f} deg"
         )
+    if failure:
+        print(
+            f"ngnav run: the filter stopped: {failure}; the {res.estimates.t_s.shape[0]} "
+            f"estimates before it are in {out}. Check the run's configuration against its data "
+            "(sensor noise, initial attitude and heading, compensation).",
+            file=sys.stderr,
+        )
+        return EXIT_DIVERGED
     return 0
+
+
+def _check_writable(out) -> None:
+    """Refuse an output path that cannot be written before any work is done (one line)."""
+    parent = out.parent if str(out.parent) else type(out)(".")
+    if out.is_dir():
+        raise ValueError(f"--out {out} is a directory; give a file NAME.csv or NAME.tlog")
+    if not parent.is_dir():
+        raise ValueError(f"--out {out}: the folder {parent} does not exist")
+    if not os.access(parent, os.W_OK) or (out.exists() and not os.access(out, os.W_OK)):
+        raise ValueError(f"--out {out}: not writable")
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
@@ -577,7 +612,7 @@ def _add_flight_args(p: argparse.ArgumentParser, default: str = "uav-survey") ->
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from telemetry.commands import add_output_args, add_stream_parser
+    from ngnav.cli.stream import add_output_args, add_stream_parser
 
     parser = argparse.ArgumentParser(
         prog="ngnav", description="GPS-aided navigation with a gyro-free nine-accelerometer IMU."
@@ -740,15 +775,33 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Exit status of a run whose filter diverged or lost its track (estimates up to it kept).
+EXIT_DIVERGED = 3
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Run one ``ngnav`` command; user errors end in one line on stderr, never a traceback.
+
+    Exit status: 0 done, 2 a bad argument, file or configuration, 3 the filter
+    diverged (:data:`EXIT_DIVERGED`), 130 interrupted (Ctrl-C).
+    """
+    from ngnav.errors import CovarianceError
+
+    where = "ngnav"
     try:
+        args = build_parser().parse_args(argv)
+        where = f"ngnav {args.command}"
         return args.func(args)
     except ValueError as exc:
-        print(f"ngnav {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{where}: error: {exc}", file=sys.stderr)
         return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    except OSError as exc:
+        name = f": {exc.filename}" if exc.filename else ""
+        print(f"{where}: error: {exc.strerror or exc}{name}", file=sys.stderr)
+        return 2
+    except CovarianceError as exc:
+        print(f"{where}: the filter diverged: {exc}", file=sys.stderr)
+        return EXIT_DIVERGED
+    except KeyboardInterrupt:
+        print(f"{where}: interrupted", file=sys.stderr)
+        return 130

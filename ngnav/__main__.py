@@ -1,0 +1,7 @@
+"""``python -m ngnav``: the ``ngnav`` command."""
+
+import sys
+
+from ngnav.cli import main
+
+sys.exit(main())
