@@ -18,7 +18,7 @@ run: $(STAMP)
 	$(BIN)/ngnav paper
 
 test: $(STAMP)
-	$(BIN)/ruff check ngnav filters telemetry tests
+	$(BIN)/ruff check ngnav filters telemetry studies tests
 	$(BIN)/python -m pytest -n 2 --dist loadfile
 
 bench: $(STAMP)

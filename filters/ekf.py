@@ -302,7 +302,7 @@ class NavFilter:
         How many times the body-velocity updates count their second-order
         remainder's variance and its attitude-product part (>= 1;
         :func:`remainder_variance`). Defaults :data:`SIDESLIP_REMAINDER_UPDATES`
-        and :data:`ATTITUDE_REMAINDER_UPDATES`; ``ngnav remainder`` measures what
+        and :data:`ATTITUDE_REMAINDER_UPDATES`; ``python -m studies.remainder`` measures what
         a flight's remainders need.
     coast_remainder_updates, coast_after_s, coast_hold_s : float
         The whole remainder's count in a coast (default

@@ -1235,7 +1235,8 @@ def run_filter(
         Called with the fraction done (0..1) now and then.
     body_velocity_log : list, optional
         Every sideslip and angle-of-attack update is appended to it as a
-        :class:`filters.vehicle_model.BodyVelocityRecord` (what ``ngnav remainder`` measures).
+        :class:`filters.vehicle_model.BodyVelocityRecord` (what
+        ``python -m studies.remainder`` measures).
 
     Raises
     ------

@@ -35,8 +35,8 @@ SIDESLIP_REMAINDER_UPDATES = 4.0
 #: model: the rotation about the constraint axis, the pitch, times the roll about the
 #: velocity), so no update shrinks it and it lasts as long as the tilt errors do: 40 is
 #: the remainder's integrated autocorrelation measured on ``uav-survey``'s outage (38-41
-#: updates, docs/filter-notes.md "the sideslip remainder"; ``ngnav remainder`` measures it on any
-#: flight). Both counts are the defaults of ``filter.remainder_updates`` and
+#: updates, docs/filter-notes.md "the sideslip remainder"; ``python -m studies.remainder``
+#: measures it on any flight). Both counts are the defaults of ``filter.remainder_updates`` and
 #: ``filter.attitude_remainder_updates``. Counted like the rest (4) it turned a hand-over's
 #: 1 deg roll and pitch errors into a pitch and angle of attack 2-3 times surer than
 #: their errors (``tactical``, 16 runs, 2-4 s: attitude NEES 7.3, angle of attack 6.1).
@@ -46,7 +46,7 @@ ATTITUDE_REMAINDER_UPDATES = 40.0
 #: Times the body-velocity updates count the whole remainder in a coast: from
 #: :data:`COAST_AFTER_S` without an accepted GPS position until ``coast_hold_s`` after
 #: the last such update. Through a coast nothing renews the errors the remainder is made
-#: of, and ``ngnav remainder`` measures its persistence there at 42 updates
+#: of, and ``python -m studies.remainder`` measures its persistence there at 42 updates
 #: (``uav-survey``, 8 runs, 300-330 s; 5-21 while GPS holds): counted 4 times the
 #: coast's end read a joint NEES of 17.9 over 325-345 s (50 runs). The default of
 #: ``filter.coast_remainder_updates``.
@@ -136,7 +136,7 @@ class BodyVelocityRecord(NamedTuple):
 
     The nominal state it linearised at, the model's value and Jacobian there, and
     the second-order remainder the update assumed: what
-    :mod:`filters.remainder_study` needs to measure the remainder actually left
+    :mod:`studies.remainder` needs to measure the remainder actually left
     against a truth.
 
     Attributes

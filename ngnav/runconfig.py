@@ -174,8 +174,8 @@ class FilterSettings:
     counts the whole remainder ``coast_remainder_updates`` times for the coast's
     hold from the vehicle models' first update (after a configured alignment at once,
     after a static one in the take-off roll; docs/filter-notes.md, "the hand-over counted
-    as a coast's end"). ``ngnav remainder`` measures what a flight's remainders actually need,
-    against its truth.
+    as a coast's end"). ``python -m studies.remainder`` measures what a flight's remainders
+    actually need, against its truth.
 
     ``forecast_error_persistence`` (>= 0, default 2): with a forecast compensation
     (GM(1,1), line, last) the filter measures the forecast's error after each block,
@@ -222,7 +222,7 @@ class FilterSettings:
     of the GPS fixes received, whichever is longer, without an accepted GPS position until
     ``coast_remainder_updates / 5 Hz`` seconds after the last such update (the
     coast's remainder lasts its count of updates after it). 40 is the persistence
-    ``ngnav remainder`` measures through ``uav-survey``'s outage. Setting it equal to
+    ``python -m studies.remainder`` measures through ``uav-survey``'s outage. Setting it equal to
     ``remainder_updates`` turns the switch off.
 
     ``remainder_off_constraint`` (default false): after each sideslip and

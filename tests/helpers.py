@@ -70,3 +70,17 @@ def run_cli(*args: str, check: bool = True, timeout: float = 600.0) -> subproces
     if check and proc.returncode != 0:
         raise AssertionError(proc.stderr)
     return proc
+
+
+def run_study(name: str, *args: str, check: bool = True, timeout: float = 600.0):
+    """``python -m studies.NAME ARGS`` from the checkout, as a real subprocess."""
+    proc = subprocess.run(
+        [sys.executable, "-m", f"studies.{name}", *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=timeout,
+    )
+    if check and proc.returncode != 0:
+        raise AssertionError(f"studies.{name} {args} failed:\n{proc.stderr}")
+    return proc

@@ -51,8 +51,11 @@ def test_bad_input_exits_with_message():
 
 def test_help_lists_commands():
     out = run("--help").stdout
-    for cmd in ("paper", "calibrate", "grey", "bench"):
+    users = ("paper", "simulate", "run", "stream", "convert", "evaluate", "consistency", "bench")
+    for cmd in users:
         assert cmd in out
+    for study in ("remainder", "calibrate"):  # research: python -m studies.NAME
+        assert f"    {study}" not in out
 
 
 def test_bench_filter_command():

@@ -16,12 +16,12 @@ from scipy.stats import chi2
 
 from filters.ekf import NavFilter
 from filters.pipeline import Pipeline, _feed
-from filters.remainder_study import lag1_correlation, realized_remainders
 from filters.updates import refresh_markov_state, update_consider
 from filters.vehicle_model import LATERAL, remainder_covariance, remainder_moments
 from ngnav.flight_scenario import load_flight
 from ngnav.runconfig import FilterSettings
 from ngnav.simulate import simulate_flight
+from studies.remainder import lag1_correlation, realized_remainders
 
 
 def _spd(rng: np.random.Generator, n: int) -> np.ndarray:

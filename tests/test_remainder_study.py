@@ -8,16 +8,6 @@ import numpy as np
 import pytest
 
 from filters.pipeline import run_filter
-from filters.remainder_study import (
-    RHO_MAX,
-    RealizedRemainders,
-    integrated_autocorrelation,
-    realized_remainder,
-    realized_remainders,
-    rotvec_between,
-    updates_per_value,
-    window_persistence,
-)
 from filters.vehicle_model import (
     COAST_REMAINDER_UPDATES,
     LATERAL,
@@ -30,7 +20,17 @@ from ngnav.flight_scenario import load_flight
 from ngnav.rotation import dcm_from_quat, quat_from_rotvec, quat_multiply
 from ngnav.runconfig import FilterSettings
 from ngnav.simulate import simulate_flight
-from tests.helpers import SHORT_TACTICAL_ARGS, level_filter, run_cli
+from studies.remainder import (
+    RHO_MAX,
+    RealizedRemainders,
+    integrated_autocorrelation,
+    realized_remainder,
+    realized_remainders,
+    rotvec_between,
+    updates_per_value,
+    window_persistence,
+)
+from tests.helpers import SHORT_TACTICAL_ARGS, level_filter, run_study
 
 
 def _one_update(slip_mps: float = 0.0):
@@ -292,8 +292,8 @@ def test_remainder_counts_are_settings_that_reach_the_update():
 
 
 def test_remainder_cli():
-    """``ngnav remainder`` as a real subprocess on two short tactical runs."""
-    proc = run_cli("remainder", *SHORT_TACTICAL_ARGS, "--runs", "2", "--window", "30", "--json")
+    """``python -m studies.remainder`` as a real subprocess on two short tactical runs."""
+    proc = run_study("remainder", *SHORT_TACTICAL_ARGS, "--runs", "2", "--window", "30", "--json")
     out = json.loads(proc.stdout)
     assert out["runs"] == 2 and out["left_out"] == []
     counts = ("remainder_updates", "attitude_remainder_updates", "coast_remainder_updates")
@@ -305,7 +305,7 @@ def test_remainder_cli():
         assert whole["updates"] == sum(w["updates"] for w in m["windows"])
         # 5 Hz over two flights of about 60 s each
         assert 500 < whole["updates"] <= 2 * 5 * 62
-    bad = run_cli("remainder", "--scenario", "static", "--runs", "1", check=False)
+    bad = run_study("remainder", "--scenario", "static", "--runs", "1", check=False)
     assert bad.returncode == 2
     assert "has no vehicle model" in bad.stderr
 

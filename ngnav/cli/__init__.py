@@ -129,36 +129,6 @@ def cmd_paper(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_calibrate(args: argparse.Namespace) -> int:
-    from ngnav.calibration_study import run_calibration_study
-    from ngnav.scenario import load_tilt_table
-
-    scn = load_tilt_table(args.scenario, args.overrides)
-    st = run_calibration_study(scn, args.runs)
-    s = scn.sensor.sensitivity_mv_per_g
-    print(f"axis-error calibration, {st.runs} simulated cubes x 9 channels ({scn.name})")
-    print(f"  true misalignment (cone angle), RMS        {st.true_cone_rms_deg:8.3f} deg")
-    print(f"  eq. 27 cone-angle error, RMS              {st.eq27_cone_rms_deg:8.3f} deg")
-    print(f"  multi-position cone-angle error, RMS      {st.multipos_cone_rms_deg:8.3f} deg")
-    print(f"  multi-position signed-angle error, RMS    {st.multipos_angle_rms_deg:8.3f} deg")
-    print(f"  multi-position |error| <= 2 sigma         {100 * st.multipos_within_2sigma:8.1f} %")
-    print(f"  multi-position scale error, RMS           {st.multipos_scale_rms:8.5f}")
-    print("eq. 27 conditioning at this sensitivity:")
-    print(
-        f"  a 1 deg axis error changes V2 by          {s * (1 - np.cos(np.deg2rad(1.0))):8.4f} mV"
-    )
-    print(
-        f"  a 0.1 mV reading error alone reads as     {np.rad2deg(np.arccos(1 - 0.1 / s)):8.3f} deg"
-    )
-    better = (
-        "multi-position least squares"
-        if st.multipos_cone_rms_deg < st.eq27_cone_rms_deg
-        else "eq. 27"
-    )
-    print(f"use: {better}")
-    return 0
-
-
 def cmd_grey(args: argparse.Namespace) -> int:
     from ngnav.grey import GreyModel11
 
@@ -561,46 +531,6 @@ def _print_cycle(rows: list[dict]) -> None:
         )
 
 
-def cmd_remainder(args: argparse.Namespace) -> int:
-    from filters.remainder_study import remainder_study
-
-    out = remainder_study(
-        _flight(args), args.runs, args.window, args.workers, progress=not args.json
-    )
-    if args.json:
-        print(json.dumps(out, indent=2))
-        return 0
-    print(
-        f"{out['scenario']}: the vehicle model's remainders over {out['runs']} runs, against the "
-        f"truth (the filter counts it {out['remainder_updates']:g} times, its attitude part "
-        f"{out['attitude_remainder_updates']:g} times, the whole in a coast "
-        f"{out['coast_remainder_updates']:g} times)"
-    )
-    print(
-        "  z2: mean squared remainder over the model's variance (1: the model's size); "
-        "rho: median lag-1 correlation over runs; count: (1 + rho) / (1 - rho), the "
-        "updates one value counts for as an AR(1); tau: the same summed over all lags "
-        "(integrated autocorrelation); R/r2: the updates' R over the mean square of the "
-        "realized remainder less the model's mean"
-    )
-    for name, m in out["models"].items():
-        print(f"  {name} model ({'sideslip' if name == 'lateral' else 'angle of attack'}):")
-        print(
-            "    window s        updates      z2    rho  count    tau   att z2  att rho"
-            "  att count  att tau     R/r2"
-        )
-        for w in [*m["windows"], m["whole"]]:
-            label = "whole flight" if w is m["whole"] else f"{w['t0_s']:6.1f}-{w['t1_s']:6.1f}"
-            print(
-                f"    {label:13s} {w['updates']:8d} {w['z2']:7.2f} {w['rho']:6.2f} "
-                f"{w['count']:6.1f} {w['tau']:6.1f} {w['z2_att']:8.2f} {w['rho_att']:8.2f} "
-                f"{w['count_att']:10.1f} {w['tau_att']:8.1f} {w['r_ratio']:8.1f}"
-            )
-    for msg in out["left_out"]:
-        print(f"  {msg}")
-    return 0
-
-
 def _add_flight_args(p: argparse.ArgumentParser, default: str = "uav-survey") -> None:
     p.add_argument(
         "--scenario",
@@ -625,11 +555,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--methods", help="comma-separated subset of none,gm11,last,line,oracle")
     p.set_defaults(func=cmd_paper)
-
-    p = sub.add_parser("calibrate", help="eq. 27 against multi-position calibration, measured")
-    _add_scenario_args(p)
-    p.add_argument("--runs", type=int, default=50, help="simulated cubes (default: %(default)s)")
-    p.set_defaults(func=cmd_calibrate)
 
     p = sub.add_parser("grey", help="fit GM(1,1) to a sequence and forecast")
     p.add_argument("values", nargs="+", type=float, help="the sequence x0, oldest first (n >= 4)")
@@ -741,22 +666,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_consistency)
-
-    p = sub.add_parser(
-        "remainder",
-        help="size and persistence of the vehicle model's second-order remainders, against "
-        "the truth of simulated runs (what filter.remainder_updates should be)",
-    )
-    _add_flight_args(p, default="tactical")
-    p.add_argument("--runs", type=int, default=8)
-    p.add_argument(
-        "--window", type=float, default=10.0, help="window length, s (default: %(default)s)"
-    )
-    p.add_argument(
-        "--workers", type=int, default=2, help="dask worker processes (default: %(default)s)"
-    )
-    p.add_argument("--json", action="store_true")
-    p.set_defaults(func=cmd_remainder)
 
     p = sub.add_parser("bench", help="speed of the front end + compensation loop")
     p.add_argument("--samples", type=int, default=20_000)

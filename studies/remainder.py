@@ -399,3 +399,74 @@ def remainder_study(
         "models": models,
         "left_out": left_out,
     }
+
+
+# ---------------------------------------------------------------- command line
+def main(argv: list[str] | None = None) -> int:
+    """``python -m studies.remainder [--scenario S] [--runs N] [--window S] [--json]``."""
+    import argparse
+    import sys
+
+    p = argparse.ArgumentParser(prog="python -m studies.remainder", description=__doc__)
+    p.add_argument("--scenario", default="tactical", help="flight scenario or TOML path")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="K=V")
+    p.add_argument("--runs", type=int, default=8)
+    p.add_argument("--window", type=float, default=10.0, help="window length, s")
+    p.add_argument("--workers", type=int, default=2, help="dask worker processes")
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    try:
+        return _report(args)
+    except ValueError as exc:
+        print(f"studies.remainder: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _report(args) -> int:
+    import json
+
+    from ngnav.flight_scenario import load_flight
+
+    out = remainder_study(
+        load_flight(args.scenario, args.overrides),
+        args.runs,
+        args.window,
+        args.workers,
+        progress=not args.json,
+    )
+    if args.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    print(
+        f"{out['scenario']}: the vehicle model's remainders over {out['runs']} runs, against the "
+        f"truth (the filter counts it {out['remainder_updates']:g} times, its attitude part "
+        f"{out['attitude_remainder_updates']:g} times, the whole in a coast "
+        f"{out['coast_remainder_updates']:g} times)"
+    )
+    print(
+        "  z2: mean squared remainder over the model's variance (1: the model's size); "
+        "rho: median lag-1 correlation over runs; count: (1 + rho) / (1 - rho), the "
+        "updates one value counts for as an AR(1); tau: the same summed over all lags "
+        "(integrated autocorrelation); R/r2: the updates' R over the mean square of the "
+        "realized remainder less the model's mean"
+    )
+    for name, m in out["models"].items():
+        print(f"  {name} model ({'sideslip' if name == 'lateral' else 'angle of attack'}):")
+        print(
+            "    window s        updates      z2    rho  count    tau   att z2  att rho"
+            "  att count  att tau     R/r2"
+        )
+        for w in [*m["windows"], m["whole"]]:
+            label = "whole flight" if w is m["whole"] else f"{w['t0_s']:6.1f}-{w['t1_s']:6.1f}"
+            print(
+                f"    {label:13s} {w['updates']:8d} {w['z2']:7.2f} {w['rho']:6.2f} "
+                f"{w['count']:6.1f} {w['tau']:6.1f} {w['z2_att']:8.2f} {w['rho_att']:8.2f} "
+                f"{w['count_att']:10.1f} {w['tau_att']:8.1f} {w['r_ratio']:8.1f}"
+            )
+    for msg in out["left_out"]:
+        print(f"  {msg}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
