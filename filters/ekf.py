@@ -37,7 +37,7 @@ from filterpy.kalman import predict as kf_predict
 from scipy.stats import chi2
 
 from filters.state import ATT, N_NAV, POS, RATE, VEL, StateLayout
-from filters.updates import quadratic_form, refresh_markov_state, update_consider
+from filters.updates import quadratic_form, update_correlated
 from filters.vehicle_model import (
     ATTITUDE_REMAINDER_UPDATES,
     BODY_REMAINDER_INTERVAL_S,
@@ -55,7 +55,6 @@ from filters.vehicle_model import (
     blend_spread_var,
     constraint_axes,
     prior_weighted_count,
-    remainder_covariance,
     remainder_moments,
     remainder_variance,
 )
@@ -321,39 +320,6 @@ class NavFilter:
         the configured heading's, have not yet been renewed by any measurement
         (docs/filter-notes.md, "the hand-over counted as a coast's
         end").
-    consider_positions : bool
-        With ``DR`` states: carry them as *consider* states (Schmidt): their covariance
-        and cross-covariances follow the propagation and every update, but no update
-        moves them (:meth:`_update`). The filter then knows how uncertain the sensor
-        positions make its rate, attitude and rate measurement, without fitting the
-        positions to errors they do not cause (``filter.position_consider``).
-    remainder_consider : bool
-        Carry the vehicle models' second-order remainders as the two ``RB`` consider
-        states (:mod:`filters.state`) in place of the counts. Before each sideslip or
-        angle-of-attack update the axis's state is stepped
-        (:func:`filters.updates.refresh_markov_state`) to the remainder's variance
-        ``tr(M P M P) / 2`` with the correlation the filter's own Gaussian model gives
-        it with the remainder at that model's previous update,
-        ``cov = tr(M_k C M_j C^T) / 2``, ``C`` the covariance of the error now with
-        the error then, carried through every propagation, update and reset since
-        (:meth:`_step_remainder_state`). The update measures ``h dx + rb`` with R the
-        sigma's and the angle of attack's terms only: each update counts the remainder
-        once, and what consecutive updates share of it is in the cross-covariances.
-        While GPS holds ``remainder_updates``, ``attitude_remainder_updates``,
-        ``count_by_prior_weight`` and ``remainder_off_constraint`` then do not apply.
-        Through coasts, the hand-over and their holds (:meth:`counts_as_coast`) the
-        updates count the remainder ``coast_remainder_updates`` times as without it:
-        there the Gaussian model fails (a coast's errors outgrow the covariance, the
-        remainder's variance, which goes as its square, collapses with it, and the
-        filter ran away; docs/filter-notes.md, "the remainder as a consider state").
-    remainder_off_constraint : bool
-        After each accepted body-velocity update, keep on the constraint's own
-        direction the remainder's variance counted once and move the rest of the
-        count onto the velocity that offsets the attitude through the constraint
-        (:meth:`_move_count_off_constraint`). False (the default): the counted
-        variance stays on the constraint, which leaves the constraint's direction
-        several times too uncertain for the 10-50 ms until the next blocks' noise
-        covers it (docs/filter-notes.md, "the count off the constraint").
     count_by_prior_weight : bool
         Outside the hand-over and coasts, scale the sideslip update's two counts by the
         weight the update keeps on the prior along the constraint
@@ -415,11 +381,8 @@ class NavFilter:
     coast_after_s: float = COAST_AFTER_S
     coast_hold_s: float = 0.0
     handover_hold_s: float = 0.0
-    remainder_off_constraint: bool = False
     count_by_prior_weight: bool = False
     body_velocity_error: bool = False
-    consider_positions: bool = False
-    remainder_consider: bool = False
     counters: Counters = field(default_factory=Counters)
 
     def __post_init__(self) -> None:
@@ -431,10 +394,6 @@ class NavFilter:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0.0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {v}")
-        #: By axis, the remainder at its model's last update: its form ``mq`` over
-        #: ``dx[sel]`` and ``C`` (n, len(sel)), the covariance of the error now with
-        #: ``dx[sel]`` then (:meth:`_step_remainder_state`).
-        self._rb_track: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._coast_until = -np.inf
         self._handover_until = -np.inf
         #: Whether the hand-over's hold starts at the next body-velocity update.
@@ -467,13 +426,7 @@ class NavFilter:
         n_aoa = int(self.aoa_prior_sigma_rad > 0)
         if n_aoa and self.aoa_lift_k_m > 0 and self.aoa_lift_k_sigma_m > 0:
             n_aoa = 2
-        n_rb = 2 if self.remainder_consider else 0
-        self.layout = StateLayout(self.quad_pairs.shape[0], n_dr, n_aoa, n_rb)
-        # the consider states' indices (DR if considered, RB), or None
-        idx = list(range(self.layout.rb.start, self.layout.rb.stop))
-        if self.consider_positions and n_dr:
-            idx = list(range(self.layout.dr.start, self.layout.dr.stop)) + idx
-        self._consider_index = np.array(idx, dtype=int) if idx else None
+        self.layout = StateLayout(self.quad_pairs.shape[0], n_dr, n_aoa)
         n = self.layout.n
         k = 6 + self.layout.nq
         for name in ("feature_cov", "bias_prior_cov", "bias_rw_cov", "bias_effect"):
@@ -620,9 +573,8 @@ class NavFilter:
         p[ia, ia] = np.diag(
             [self.aoa_prior_sigma_rad**2, self.aoa_lift_k_sigma_m**2][: ia.stop - ia.start]
         )
-        self.P = p  # the RB states start at zero variance: their first step sets it
+        self.P = p
         self.x = np.zeros(self.layout.n)
-        self._rb_track = {}
         self.t_last_position_fix = self.t_s
         # the hold starts at the vehicle models' first update (current_remainder_updates)
         self._handover_until = -np.inf
@@ -868,9 +820,6 @@ class NavFilter:
     ) -> None:
         phi, q = self.propagation_matrices(k, dt, c, f_n, sg)
         self.x, self.P = kf_predict(self.x, self.P, phi, q)
-        if self._rb_track:
-            for axis, (mq, cc) in self._rb_track.items():
-                self._rb_track[axis] = (mq, phi @ cc)
         self._symmetrise()
 
     def propagation_matrices(
@@ -1140,18 +1089,10 @@ class NavFilter:
     ) -> tuple[np.ndarray, np.ndarray]:
         """The Kalman update of every measurement (error state ``x``, zero before it).
 
-        filterpy's update (:func:`filters.updates.update_correlated` with noise correlated
-        with the prior as ``m``), or, with consider states (``DR`` with
-        :attr:`consider_positions`, ``RB``), the Schmidt update that leaves them
-        unestimated (:func:`filters.updates.update_consider`).
+        filterpy's update (:func:`filters.updates.update_correlated`, with the noise
+        correlated with the prior as ``m`` where there is such a correlation).
         """
-        if not self._rb_track:
-            return update_consider(self.x, self.P, y, r, h, m, self._consider_index)
-        x, p, k = update_consider(self.x, self.P, y, r, h, m, self._consider_index, True)
-        # the error after the update is (I - K H) dx - K v: the tracks' C follow
-        for axis, (mq, c) in self._rb_track.items():
-            self._rb_track[axis] = (mq, c - k @ (h @ c))
-        return x, p
+        return update_correlated(self.x, self.P, y, r, h, m)
 
     def rate_model(
         self,
@@ -1511,22 +1452,9 @@ class NavFilter:
             # the blend beyond its linear term moves the angle, and the velocity with it
             lift = self._unblended_aoa()
             blend_var = dv_da * dv_da * lift * lift * self.blend_remainder_var()
-        use_rb = self.remainder_consider and not self.counts_as_coast()
-        if use_rb:
-            # the remainder as the axis's consider state, counted once
-            self.current_remainder_updates()  # the counters
-            self._step_remainder_state(axis, mq, sel, rem.var)
-            h[0, self.layout.rb.start + (0 if axis == LATERAL else 1)] = 1.0
-            counted = 0.0
-        else:
-            n_upd = self.current_remainder_updates()
-            counted = remainder_variance(rem, n_upd, self.attitude_remainder_updates)
-        if (
-            not use_rb
-            and self.count_by_prior_weight
-            and axis == LATERAL
-            and not self.counts_as_coast()
-        ):
+        n_upd = self.current_remainder_updates()
+        counted = remainder_variance(rem, n_upd, self.attitude_remainder_updates)
+        if self.count_by_prior_weight and axis == LATERAL and not self.counts_as_coast():
             # outside the hand-over and coasts (whose count stands for more than the
             # remainder's persistence): the count as far as the update keeps the prior;
             # the sideslip model only, whose prior along the constraint is fresh noise
@@ -1548,84 +1476,13 @@ class NavFilter:
             aoa = self.aoa if axis == VERTICAL else 0.0
             rec = (self.t_s, axis, self.q.copy(), self.vel.copy(), aoa, v_axis)
             rec += (h[0, ATT].copy(), h[0, VEL].copy(), dv_da, rem, float(var))
-        ph = self.P @ h[0] if self.remainder_off_constraint and not use_rb else None
         nis, ok = self._gated_update(np.array([-(v_axis + rem.mean)]), r, h, self.gate1)
         if ok:
             self._model_last_t[axis] = self.t_s
         self._model_last_ok[axis] = ok
-        if ok and ph is not None:
-            self._move_count_off_constraint(h[0], ph, var, counted - rem.var)
         if log is not None:
             log.append(BodyVelocityRecord(*rec, ok))
         return nis, ok
-
-    def _step_remainder_state(
-        self, axis: int, mq: np.ndarray, sel: np.ndarray, var_mps2: float
-    ) -> float:
-        """Step the ``RB`` state of ``axis`` to the remainder ``x^T mq x / 2``, ``x = dx[sel]``.
-
-        Its variance is ``var_mps2`` (``tr(mq P mq P) / 2``); its correlation with the
-        state's value at the model's last update is the two remainders' under the
-        filter's Gaussian errors, ``tr(mq C mq_j C^T) / 2`` over the two variances, with
-        ``C`` the error's covariance now with then (zero at the first update, or when
-        either variance is zero). :func:`filters.updates.refresh_markov_state` then
-        scales the state's cross-covariances by the regression on its last value and
-        sets its variance. Returns the correlation used.
-        """
-        i = self.layout.rb.start + (0 if axis == LATERAL else 1)
-        var = max(float(var_mps2), 0.0)
-        phi = 0.0
-        track = self._rb_track.get(axis)
-        old = float(self.P[i, i])
-        if track is not None and var > 0.0 and old > 0.0:
-            mq_j, c = track
-            # c[sel] (len(sel), len(mq_j)): cov(dx[sel] now, the form's errors then)
-            cov = remainder_covariance(mq, mq_j, c[sel])
-            phi = float(np.clip(cov / np.sqrt(var * old), -1.0, 1.0))
-        self.P = refresh_markov_state(self.P, i, var, phi)
-        self._rb_track[axis] = (mq, self.P[:, sel].copy())
-        return phi
-
-    def _track_forget(self, rows: slice | np.ndarray) -> None:
-        """The errors in ``rows`` were replaced by fresh ones: zero them in the tracks."""
-        for axis, (mq, c) in self._rb_track.items():
-            c = c.copy()
-            c[rows] = 0.0
-            self._rb_track[axis] = (mq, c)
-
-    def _move_count_off_constraint(
-        self, h: np.ndarray, ph: np.ndarray, r: float, extra: float
-    ) -> None:
-        """After a body-velocity update: the count's extra variance off the constraint.
-
-        The update used ``R = r`` (m^2/s^2), of which ``extra`` is the remainder's
-        variance counted more than once; ``h`` (n,) is its Jacobian and ``ph`` (n,)
-        the prior ``P h^T``. The count stands for the remainder's persistence over
-        consecutive updates, an error that builds up in what the constraint does not
-        fix. On the constraint's own direction the posterior error is
-        ``(1 - h K) h dx - h K v`` whatever came before, so its variance takes ``v``'s
-        marginal variance, the remainder counted once. So the posterior's
-        ``extra K K^T`` (``K`` the gain, ``extra K K^T`` the count's share of
-        ``K R K^T``) becomes ``extra k k^T`` with ``k = K - u (h K)``, ``u`` along the
-        velocity part of ``h`` (``h u = 1``): ``h k = 0``, and only the velocity's rows
-        and columns change. The attitude keeps the whole count; the velocity takes the
-        part that, through the constraint, offsets it.
-        """
-        if extra <= 0.0:
-            return
-        k = ph / (float(h @ ph) + r)
-        hv = h[VEL]
-        nv = float(hv @ hv)
-        if nv <= 0.0:
-            return
-        # k k^T - kt kt^T = k d^T + d k^T - d d^T with d = k - kt, nonzero on VEL only
-        d = hv * (float(h @ k) / nv)
-        p = self.P
-        p[VEL, :] -= extra * np.outer(d, k)
-        p[:, VEL] -= extra * np.outer(k, d)
-        p[VEL, VEL] += extra * np.outer(d, d)
-        self.P = p
-        self._symmetrise()
 
     def current_remainder_updates(self) -> float:
         """The count of the whole remainder a body-velocity update uses now.
@@ -2031,7 +1888,6 @@ class NavFilter:
         p[POS, POS] = np.diag(np.broadcast_to(np.asarray(pos_sigma_m, dtype=float), 3) ** 2)
         p[VEL, VEL] = np.eye(3) * float(vel_sigma_mps) ** 2
         self.P = p
-        self._track_forget(~keep)
         self._consec_rejects = 0
         self._consec_vel_rejects = 0
         self.t_last_position_fix = self.t_s
@@ -2047,7 +1903,6 @@ class NavFilter:
         p[:, 8] = 0.0
         p[8, 8] = sigma_rad**2
         self.P = p
-        self._track_forget(np.array([8]))
         self._consec_slip_rejects = 0
         self.check_covariance("heading alignment")
 
@@ -2106,13 +1961,6 @@ class NavFilter:
         else:
             p[ATT, :] = ga @ p[ATT, :]
             p[:, ATT] = p[:, ATT] @ ga.T
-        for axis, (mq, c) in self._rb_track.items():
-            c = c.copy()
-            c_t = c[ATT].copy()
-            if body:
-                c[VEL] = gvv @ c[VEL] + gvt @ c_t
-            c[ATT] = ga @ c_t
-            self._rb_track[axis] = (mq, c)
         self.P = 0.5 * (p + p.T)
         self.x = np.zeros(self.x.shape[0])
 
@@ -2125,20 +1973,11 @@ class NavFilter:
         ``full=False`` is the per-block check: finite with a positive diagonal
         (P is symmetrised after every step). The full check adds symmetry and
         a Cholesky factorisation (positive definite); the pipeline runs it at
-        every GPS fix and once a second. An ``RB`` state of zero variance (before its
-        model's first update, or a remainder of zero) has a zero row and column by
-        construction (:func:`filters.updates.refresh_markov_state`) and is left out.
+        every GPS fix and once a second.
         """
         p = self.P
         if not np.isfinite(p).all():
             raise CovarianceError(f"covariance not finite after {where} at t = {self.t_s:.3f} s")
-        if self.layout.n_rb:
-            rb = self.layout.rb
-            idle = np.diagonal(p)[rb] == 0.0
-            if idle.any():
-                keep = np.ones(self.layout.n, dtype=bool)
-                keep[rb] = ~idle
-                p = p[np.ix_(keep, keep)]
         if not full:
             if np.diagonal(p).min() <= 0.0:
                 raise CovarianceError(

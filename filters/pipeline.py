@@ -565,11 +565,8 @@ class Pipeline:
             # first meet after a static alignment (the configured heading's): counted
             # so for as long from the models' first update
             handover_hold_s=hold_s,
-            remainder_off_constraint=cfg.filter.remainder_off_constraint,
             count_by_prior_weight=cfg.filter.count_by_prior_weight,
             body_velocity_error=cfg.filter.body_velocity_error,
-            consider_positions=cfg.filter.position_consider,
-            remainder_consider=cfg.filter.remainder_consider,
         )
         nf.body_velocity_log = self.body_velocity_log
         self.nf = nf

@@ -15,8 +15,6 @@ B_QUAD     nq     bias of the solved rate-quadratic terms, rad^2/s^2
 DR         3N     residual sensor-position errors ``dr_i``, FRD, m (optional)
 AOA        1-2    angle-of-attack error, rad; with a lift law the law's offset
                   error (rad) and its ``K`` error (m) (optional)
-RB         2      the vehicle models' second-order remainders (lateral, then
-                  wind-normal), m/s: consider states, never estimated (optional)
 =========  =====  ==============================================================
 
 Why these biases: each channel's bias ``beta_i`` enters the solved features as
@@ -65,32 +63,39 @@ slope are never known exactly, and its effect grows with the load factor,
 which a random walk cannot describe). Without a law the state is ``alpha``
 itself. Without the block the model assumes zero angle of attack, which only a
 vehicle flying along its body axis keeps. Present when ``aoa_prior_sigma_deg`` > 0.
-
-Why ``RB`` (``filter.remainder_consider``, off by default): the vehicle models'
-linearisation leaves a second-order remainder (products of attitude, velocity and
-angle-of-attack errors) that stays nearly the same from one 5 Hz update to the
-next, so as white noise it would be averaged away. As a consider (Schmidt)
-state per model, stepped before each update to the variance and the correlation
-with its last value that the filter's own Gaussian errors give it, each update
-counts it once and later updates see what they share of it through the
-cross-covariances (the default instead counts its variance several times in R).
-Never estimated: nothing observes a remainder apart from the errors it is made of.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-POS = slice(0, 3)
-VEL = slice(3, 6)
-ATT = slice(6, 9)
-RATE = slice(9, 12)
-B_WDOT = slice(12, 15)
-B_F = slice(15, 18)
+
+def block_slices(blocks: tuple[tuple[str, int], ...]) -> dict[str, slice]:
+    """Slices of consecutive ``(name, dof)`` blocks, in their declared order."""
+    out, start = {}, 0
+    for name, dof in blocks:
+        out[name] = slice(start, start + dof)
+        start += dof
+    return out
+
+
+#: The blocks every filter carries, in order: navigation (position, velocity, attitude,
+#: rate) and the biases of the solved angular acceleration and specific force.
+FIXED_BLOCKS: tuple[tuple[str, int], ...] = (
+    ("pos", 3),
+    ("vel", 3),
+    ("att", 3),
+    ("rate", 3),
+    ("b_wdot", 3),
+    ("b_f", 3),
+)
+_FIXED = block_slices(FIXED_BLOCKS)
+POS, VEL, ATT, RATE = _FIXED["pos"], _FIXED["vel"], _FIXED["att"], _FIXED["rate"]
+B_WDOT, B_F = _FIXED["b_wdot"], _FIXED["b_f"]
 #: Number of navigation error states (position, velocity, attitude, rate).
-N_NAV = 12
+N_NAV = RATE.stop
 #: Error states before the rate-quadratic biases.
-N_BASE = 18
+N_BASE = B_F.stop
 
 
 def b_quad(nq: int) -> slice:
@@ -100,46 +105,46 @@ def b_quad(nq: int) -> slice:
 
 @dataclass(frozen=True)
 class StateLayout:
-    """Error-state size: ``nq`` rate-quadratic terms, ``n_dr`` position states,
-    ``n_aoa`` (0-2) angle-of-attack states, ``n_rb`` (0 or 2) remainder states."""
+    """The error state of one filter: the fixed blocks, then ``nq`` rate-quadratic
+    biases, ``n_dr`` sensor-position states and ``n_aoa`` (0-2) angle-of-attack states.
+
+    Every slice comes from :attr:`blocks`, the one ordered declaration.
+    """
 
     nq: int
     n_dr: int = 0
     n_aoa: int = 0
-    n_rb: int = 0
+    _slices: dict[str, slice] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.n_aoa not in (0, 1, 2):
             raise ValueError(f"n_aoa must be 0, 1 or 2, got {self.n_aoa}")
-        if self.n_rb not in (0, 2):
-            raise ValueError(f"n_rb must be 0 or 2, got {self.n_rb}")
+        object.__setattr__(self, "_slices", block_slices(self.blocks))
+
+    @property
+    def blocks(self) -> tuple[tuple[str, int], ...]:
+        """The ordered ``(name, dof)`` blocks of this layout."""
+        return (*FIXED_BLOCKS, ("b_quad", self.nq), ("dr", self.n_dr), ("aoa", self.n_aoa))
 
     @property
     def n(self) -> int:
         """Total error-state size."""
-        return N_BASE + self.nq + self.n_dr + self.n_aoa + self.n_rb
+        return self._slices["aoa"].stop
 
     @property
     def dr(self) -> slice:
         """The sensor-position error block (3N or empty)."""
-        return slice(N_BASE + self.nq, N_BASE + self.nq + self.n_dr)
+        return self._slices["dr"]
 
     @property
     def aoa(self) -> slice:
         """The angle-of-attack block (0, 1 or 2 states)."""
-        start = N_BASE + self.nq + self.n_dr
-        return slice(start, start + self.n_aoa)
-
-    @property
-    def rb(self) -> slice:
-        """The vehicle models' remainder block (lateral, wind-normal; 2 states or empty)."""
-        start = N_BASE + self.nq + self.n_dr + self.n_aoa
-        return slice(start, start + self.n_rb)
+        return self._slices["aoa"]
 
     @property
     def bias(self) -> slice:
         """All bias states (angular acceleration, force, quadratic), in solve-column order."""
-        return slice(12, N_BASE + self.nq)
+        return slice(B_WDOT.start, self._slices["b_quad"].stop)
 
 
 #: Names of the error-state blocks used for NEES, with their slices.

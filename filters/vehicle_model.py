@@ -261,19 +261,6 @@ def remainder_moments(m: np.ndarray, px: np.ndarray) -> Remainder:
     )
 
 
-def remainder_covariance(mq_k: np.ndarray, mq_j: np.ndarray, c_kj: np.ndarray) -> float:
-    """Covariance of two remainders ``x^T mq_k x / 2`` and ``y^T mq_j y / 2``, m^2/s^2.
-
-    For jointly Gaussian zero-mean errors ``x`` (d_k,) and ``y`` (d_j,) with
-    cross-covariance ``c_kj = E[x y^T]`` (d_k, d_j), Isserlis' theorem gives
-    ``Cov = tr(mq_k c_kj mq_j c_kj^T) / 2`` (with ``y = x`` it is
-    :func:`remainder_moments`' variance). :class:`filters.ekf.NavFilter` takes ``x``
-    as the error at a vehicle-model update and ``y`` as the error at that model's
-    previous one (``filter.remainder_consider``).
-    """
-    return 0.5 * float(np.sum((mq_k @ c_kj @ mq_j) * c_kj))
-
-
 def blend_spread_var(x0: float, sx: float) -> float:
     """Variance of the minimum-jerk step ``s`` beyond its linear term at ``x0``.
 

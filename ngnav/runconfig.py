@@ -35,9 +35,8 @@ truth to separate files.
                    remainder_updates, attitude_remainder_updates,
                    coast_remainder_updates, coast_after_s,
                    forecast_error_persistence, forecast_correction,
-                   remainder_off_constraint, vehicle_model_rate_hz,
-                   count_by_prior_weight, body_velocity_error, position_consider,
-                   remainder_consider, rest_rate_sigma_dps
+                   vehicle_model_rate_hz, count_by_prior_weight,
+                   body_velocity_error, rest_rate_sigma_dps
                    (each explained in FilterSettings' docstring)
 """
 
@@ -46,7 +45,7 @@ from __future__ import annotations
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -151,18 +150,6 @@ class FilterSettings:
     (``DR``, see :mod:`filters.state`) when the calibration gives a position
     1-sigma; False leaves them out (the scatter is then unmodelled).
 
-    ``position_consider`` (default false; needs ``position_states``): carry the ``DR``
-    states as *consider* states (Schmidt-Kalman, ``filters.updates.update_consider``):
-    their covariance and their cross-covariances with everything else follow the
-    propagation and every update, but no update moves them, so the filter counts what
-    the unknown positions can do to the angular acceleration, the rate measurement and
-    through them the attitude, without fitting the positions to errors they do not
-    cause. Off in both scenarios. On ``uav-survey`` (runs 0-49) it takes away the rate's
-    optimism at every roll-in and roll-out, which the unknown positions cause (their
-    error there is coherent, the size of the rate's 1-sigma), but the joint NEES reads
-    87.5 % inside against 88.8 %: the coast turns more pessimistic and 540-560 s
-    optimistic (docs/filter-notes.md, "the sensor positions as consider states").
-
     ``remainder_updates`` and ``attitude_remainder_updates`` (each >= 1): how many
     times the sideslip and angle-of-attack updates count their second-order
     remainder's variance, and its attitude-product part, in R: the number of
@@ -205,18 +192,6 @@ class FilterSettings:
     error taken out of the state"). On ``uav-survey``'s five draws it left the same
     misses, each a little smaller, so the survey ships without it (docs/filter-notes.md).
 
-    ``remainder_consider`` (default false): carry the vehicle models' second-order
-    remainders as two consider states (``RB`` in ``filters.state``;
-    ``filters.ekf.NavFilter.remainder_consider``) in place of counting their variance
-    in R: each update counts the remainder once, and its correlation with the
-    remainder at the model's previous update, which the filter's own Gaussian errors
-    give (the two quadratic forms over the errors' covariance across the interval),
-    is carried in the covariance. With it, while GPS holds, the counts below,
-    ``count_by_prior_weight`` and ``remainder_off_constraint`` do not apply; through
-    coasts, the hand-over and their holds the updates keep ``coast_remainder_updates``
-    (there the Gaussian model of the remainder failed). Off in both scenarios
-    (docs/filter-notes.md, "the remainder as a consider state").
-
     ``coast_remainder_updates`` (>= 1, default 40) replaces ``remainder_updates``
     while the filter coasts: from ``coast_after_s`` (default 1 s) or five intervals
     of the GPS fixes received, whichever is longer, without an accepted GPS position until
@@ -224,21 +199,6 @@ class FilterSettings:
     coast's remainder lasts its count of updates after it). 40 is the persistence
     ``python -m studies.remainder`` measures through ``uav-survey``'s outage. Setting it equal to
     ``remainder_updates`` turns the switch off.
-
-    ``remainder_off_constraint`` (default false): after each sideslip and
-    angle-of-attack update, the constraint's own direction keeps the remainder's
-    variance counted once, and the rest of the count moves onto the velocity that
-    offsets the attitude through the constraint
-    (``filters.ekf.NavFilter._move_count_off_constraint``; only the velocity's
-    covariance changes). The count stands for an error that persists over updates
-    and builds up in what the constraint does not fix; on the constraint's own
-    direction the error after the update is the current remainder, whose variance
-    is counted once. Counted whole there, the joint NEES dipped for 10-50 ms after
-    every 5 Hz update (``ngnav consistency --cycle 0.2``; docs/filter-notes.md, "the count off the
-    constraint"). Off in both scenarios: over ten draws of ``tactical`` it took the
-    joint's pessimism away (misses 5 -> 3) but made the angle of attack more
-    optimistic (misses 5 -> 8), and on ``uav-survey`` (attitude count 40) it left the
-    velocity pessimistic (66 % inside on runs 0-49).
 
     ``vehicle_model_rate_hz`` (in (0, 5], default 5): the rate of the sideslip and
     angle-of-attack updates outside the hand-over and coasts; through those (and their
@@ -299,6 +259,14 @@ class FilterSettings:
     such vehicles.
     """
 
+    #: Settings that no longer exist, with the behaviour that is now fixed: a file that
+    #: gives that value still reads (docs/design.md, "Settings retired").
+    RETIRED: ClassVar[dict[str, Any]] = {
+        "remainder_off_constraint": False,
+        "position_consider": False,
+        "remainder_consider": False,
+    }
+
     rate_hz: float = 100.0
     compensation: str = "gm11"
     window: int = 5
@@ -323,12 +291,9 @@ class FilterSettings:
     coast_after_s: float = 1.0
     forecast_error_persistence: float = 2.0
     forecast_correction: bool = False
-    remainder_off_constraint: bool = False
     vehicle_model_rate_hz: float = 5.0
     count_by_prior_weight: bool = False
     body_velocity_error: bool = False
-    position_consider: bool = False
-    remainder_consider: bool = False
     rest_rate_sigma_dps: float = 0.0
 
     def __post_init__(self) -> None:
@@ -346,11 +311,6 @@ class FilterSettings:
             v = getattr(self, name)
             if not (np.isfinite(v) and 0.0 <= v <= 30.0):
                 raise ValueError(f"filter.{name} must be a number in [0, 30], got {v}")
-        if self.position_consider and not self.position_states:
-            raise ValueError(
-                "filter.position_consider needs filter.position_states = true "
-                "(it changes how the sensor-position states are updated)"
-            )
         if self.aoa_prior_sigma_deg > 0 and self.aoa_sigma_deg == 0:
             raise ValueError(
                 "filter.aoa_prior_sigma_deg > 0 needs filter.aoa_sigma_deg > 0: the "

@@ -777,47 +777,6 @@ def test_correlated_update_is_filterpys_correlated_filter():
         assert np.abs(p0 - p2).max() > 1e-3
 
 
-def test_consider_update_is_the_schmidt_filter():
-    """update_consider: with no fixed states it is update_correlated to rounding; with
-    some fixed, their value and covariance stay, and the covariance it returns is that
-    of the errors the gain it applies really leaves. The reference is a Monte Carlo of
-    the definition (prior error and correlated noise drawn jointly, the gain with the
-    fixed rows zeroed, e+ = e - K (H e + v)) on 400 000 draws: every entry within 5
-    standard errors of a sample covariance (sqrt((P_ii P_jj + P_ij^2) / N)). The
-    optimal update's covariance is outside those bounds: the test tells them apart."""
-    from filters.updates import update_consider, update_correlated
-
-    rng = np.random.default_rng(29)
-    n, nz, fixed = 7, 3, slice(4, 7)
-    a = rng.normal(size=(n + nz, n + nz))
-    joint = a @ a.T + 0.1 * np.eye(n + nz)
-    p, m, r = joint[:n, :n], joint[:n, n:], joint[n:, n:]
-    h = rng.normal(size=(nz, n))
-    x, z = np.zeros(n), rng.normal(size=nz)
-    x0, p0 = update_correlated(x, p, z, r, h, m)
-    x1, p1 = update_consider(x, p, z, r, h, m, slice(0, 0))
-    np.testing.assert_allclose(x1, x0, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(p1, p0, rtol=0, atol=1e-10)
-    x2, p2 = update_consider(x, p, z, r, h, m, fixed)
-    assert np.all(x2[fixed] == 0.0)
-    np.testing.assert_array_equal(p2[fixed, fixed], p[fixed, fixed])
-    assert np.min(np.linalg.eigvalsh(p2)) > 0
-    n_mc = 400_000
-    w = rng.standard_normal((n_mc, n + nz)) @ np.linalg.cholesky(joint).T
-    e, v = w[:, :n], w[:, n:]
-    ph = p @ h.T + m
-    s = h @ ph + (h @ m).T + r
-    k = np.linalg.solve(s, ph.T).T
-    k[fixed] = 0.0
-    np.testing.assert_allclose(x2, k @ z, rtol=0, atol=1e-12)
-    ep = e - (e @ h.T + v) @ k.T
-    cov = ep.T @ ep / n_mc
-    d = np.sqrt(np.diag(p2))
-    se = np.sqrt((np.outer(d * d, d * d) + p2 * p2) / n_mc)
-    assert np.all(np.abs(cov - p2) < 5 * se)
-    assert np.any(np.abs(cov - p0) > 5 * se)
-
-
 def test_rate_noise_cross_is_the_propagations_covariance_with_the_quad_noise():
     """Monte Carlo (fixed seed): the errors one propagated block leaves (true - estimate, with
     feature noise drawn from the solver's covariance) against the mean of the same samples'
@@ -900,71 +859,6 @@ def test_rate_jacobian_carries_the_forecast_compensations_return_of_the_rate_err
     assert 0.05 < miss < 0.1, miss
     with pytest.raises(ValueError, match="quad_feedback"):
         NavFilter(noise, PAIRS, np.zeros(3), quad_feedback=np.zeros((3, 3)))
-
-
-@pytest.mark.parametrize("axis", [LATERAL, VERTICAL])
-def test_count_moved_off_the_constraint(axis):
-    """``remainder_off_constraint``: after a body-velocity update whose R counts the
-    remainder several times, the constraint's own direction has the Joseph-form
-    variance of the update with the remainder counted once,
-    ``(1 - hK)^2 h P h^T + (hK)^2 (R - extra)``, and nothing but the velocity's rows
-    and columns differ from the plain update (the attitude keeps the whole count).
-
-    Set up at a coast-sized covariance where the remainder dominates R, with the
-    velocity's lateral (or wind-normal) part chosen so that the innovation is zero:
-    no state moves, so the attitude reset leaves P as filterpy's update gives it.
-    """
-    sigma = np.deg2rad(0.003)
-    filters = []
-    for on in (False, True):
-        nf, _, _ = _filter()
-        nf.remainder_off_constraint = on
-        rng = np.random.default_rng(11)
-        nf.q = quat_from_rotvec(np.array([0.2, 0.05, 1.0]))
-        c = dcm_from_quat(nf.q)
-        n_b = np.array([0.0, 1.0, 0.0]) if axis == LATERAL else np.array([0.0, 0.0, 1.0])
-        idx = np.r_[6:9, 3:6]
-        a = rng.normal(size=(6, 6))
-        scale = np.r_[[0.05] * 3, [1.0] * 3]
-        p = np.eye(nf.layout.n) * 1e-6
-        p[np.ix_(idx, idx)] = (a @ a.T) * np.outer(scale, scale) / 6.0
-        nf.P = p
-        nf.vel = 20.0 * c[:, 0]
-        for _ in range(30):  # the axis velocity that cancels the remainder's mean
-            mean2 = nf.body_velocity_second_order(axis).mean
-            nf.vel = 20.0 * c[:, 0] - mean2 * (c @ n_b)
-        v_axis, h = nf.body_velocity_model(nf.q, nf.vel, axis)
-        assert abs(v_axis + nf.body_velocity_second_order(axis).mean) < 1e-13
-        rem = nf.body_velocity_second_order(axis)
-        speed = np.hypot(nf.vel[0], nf.vel[1]) if axis == LATERAL else np.linalg.norm(nf.vel)
-        r0 = (speed * np.tan(sigma)) ** 2
-        counted = remainder_variance(rem)
-        extra = counted - rem.var
-        assert extra > 3.0 * (r0 + rem.var)  # the count dominates what is moved
-        if axis == LATERAL:
-            nf.update_sideslip(sigma, 5.0)
-        else:
-            nf.update_angle_of_attack(sigma, 5.0)
-        filters.append((nf, p, h[0], r0 + counted, extra))
-    (plain, p, h, r, extra), (moved, *_) = filters
-    np.testing.assert_array_equal(moved.vel, plain.vel)
-    np.testing.assert_array_equal(moved.q, plain.q)
-    # the plain update is filterpy's, with the counted R
-    _, p_ref = kf_update(np.zeros(plain.layout.n), p.copy(), np.zeros(1), np.array([[r]]), h[None])
-    np.testing.assert_allclose(plain.P, p_ref, rtol=0, atol=1e-15)
-    # only the velocity's rows and columns change
-    other = np.ones(plain.layout.n, dtype=bool)
-    other[VEL] = False
-    diff = moved.P - plain.P
-    np.testing.assert_allclose(diff[np.ix_(other, other)], 0.0, rtol=0, atol=1e-15)
-    assert np.abs(diff[VEL]).max() > 1e-3 * np.abs(plain.P[VEL, VEL]).max()
-    # the constraint's direction: the Joseph form with the remainder counted once
-    hph = float(h @ p @ h)
-    hk = hph / (hph + r)
-    want = (1.0 - hk) ** 2 * hph + hk**2 * (r - extra)
-    assert float(h @ moved.P @ h) == pytest.approx(want, rel=1e-6)
-    assert float(h @ plain.P @ h) == pytest.approx(want + hk**2 * extra, rel=1e-9)
-    np.linalg.cholesky(moved.P)  # still positive definite
 
 
 def test_prior_weighted_count_limits():
@@ -1053,12 +947,11 @@ def test_count_by_prior_weight_update(axis, prior_scale):
         assert r_on == pytest.approx(r_off, rel=1e-2)
 
 
-@pytest.mark.parametrize("setting", ["remainder_off_constraint", "count_by_prior_weight"])
+@pytest.mark.parametrize("setting", ["count_by_prior_weight"])
 def test_vehicle_model_switch_is_a_setting_that_reaches_the_filter(setting):
-    """``filter.remainder_off_constraint`` and ``filter.count_by_prior_weight`` (each off
-    by default) reach the filter a run builds, from a scenario override as ``--set``
-    gives it: on a 3 s turn the covariance differs, and the nominal state the first
-    update meets is the same."""
+    """``filter.count_by_prior_weight`` (off by default) reaches the filter a run builds,
+    from a scenario override as ``--set`` gives it: on a 3 s turn the covariance differs,
+    and the nominal state the first update meets is the same."""
     from filters.pipeline import run_filter
     from ngnav.flight_scenario import load_flight
     from ngnav.runconfig import FilterSettings

@@ -280,7 +280,7 @@ def test_simulate_then_run_cli(tmp_path):
     bad = subprocess.run(
         [*run, "run", str(tmp_path / "nowhere")], capture_output=True, text=True, cwd=ROOT
     )
-    assert bad.returncode == 2 and "config.toml: no such file" in bad.stderr
+    assert bad.returncode == 2 and "nowhere: no such file or directory" in bad.stderr
 
 
 #: The hand-over transient of ``tactical`` ends by this time (s); see

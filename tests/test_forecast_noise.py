@@ -223,32 +223,3 @@ def test_forecast_correction_is_a_setting_that_reaches_the_state():
         _feed(pipe, sim.samples, sim.fixes, None)
         ends[on] = (pipe.nf.w.copy(), pipe.nf.vel.copy())
     assert not np.allclose(ends[True][0], ends[False][0], rtol=0.0, atol=1e-12)
-
-
-def test_position_consider_keeps_the_positions_unestimated_but_counted():
-    """``filter.position_consider`` (off by default): with it the filter's ``DR`` states
-    stay at zero through a turning flight with GPS while their covariance still couples
-    into the rate (the rate's variance differs from the run without ``DR`` states, and
-    from the run that estimates them, whose ``DR`` estimates move)."""
-    assert FilterSettings().position_consider is False
-    with pytest.raises(ValueError, match=r"position_consider needs filter\.position_states"):
-        FilterSettings(position_states=False, position_consider=True)
-    scn = load_flight(
-        "tactical",
-        ["run.rate_hz=200", "flight.legs=[{ duration_s = 3.0, ramp_s = 1.0, bank_deg = 30.0 }]"],
-    )
-    sim = simulate_flight(scn, 0)
-    ends = {}
-    runs = (("none", False, False), ("est", True, False), ("con", True, True))
-    for name, states, consider in runs:
-        f = replace(sim.config.filter, position_states=states, position_consider=consider)
-        pipe = Pipeline(replace(sim.config, filter=f))
-        _feed(pipe, sim.samples, sim.fixes, None)
-        nf = pipe.nf
-        assert nf.consider_positions is consider
-        ends[name] = (nf.dr.copy() if nf.layout.n_dr else None, nf.P[RATE, RATE].copy())
-    assert ends["none"][0] is None
-    assert np.abs(ends["est"][0]).max() > 0.0
-    assert np.all(ends["con"][0] == 0.0)
-    for a, b in (("con", "none"), ("con", "est")):
-        assert not np.allclose(ends[a][1], ends[b][1], rtol=1e-6, atol=0.0)

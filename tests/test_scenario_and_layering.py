@@ -83,3 +83,27 @@ def test_layer_check_sees_a_violation(tmp_path):
     f = tmp_path / "m.py"
     f.write_text("def g():\n    from filters.pipeline import Pipeline\n    return Pipeline\n")
     assert _imported_packages(f) == {"filters"}
+
+
+def test_a_retired_setting_reads_at_its_fixed_value_and_is_refused_otherwise(tmp_path):
+    """Run directories written before a setting was retired still read."""
+    from ngnav.flight_scenario import load_flight
+    from ngnav.runconfig import (
+        FilterSettings,
+        read_run_config_text,
+        write_run_config,
+    )
+    from ngnav.simulate import simulate_flight
+
+    cfg = simulate_flight(load_flight("static"), 0).config
+    write_run_config(cfg, tmp_path / "config.toml")
+    text = (tmp_path / "config.toml").read_text()
+    assert "[filter]" in text
+    for key, fixed in FilterSettings.RETIRED.items():
+        value = str(fixed).lower()
+        old = text.replace("[filter]\n", f"[filter]\n{key} = {value}\n")
+        assert read_run_config_text(old, "old.toml").filter == cfg.filter
+        flipped = str(not fixed).lower()
+        bad = text.replace("[filter]\n", f"[filter]\n{key} = {flipped}\n")
+        with pytest.raises(ValueError, match=f"filter.{key} was retired; it is always"):
+            read_run_config_text(bad, "old.toml")
