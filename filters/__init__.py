@@ -1,4 +1,5 @@
-"""Kalman filtering for ngnav (GPS + nine-accelerometer array); built on filterpy.
+"""The GPS/array error-state Kalman filter on filterpy, and its evaluation (errors, NEES/NIS).
 
-Empty until the filter issue lands; ``ngnav`` core never imports this package.
+Layer: imports the core (``ngnav``) only; neither the core nor ``telemetry`` imports it
+(:mod:`ngnav.cli` and :mod:`ngnav.api` wire it in). Design: ``docs/design.md``.
 """

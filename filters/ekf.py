@@ -318,7 +318,7 @@ class NavFilter:
         update comes at once) and a static one (whose first comes in the take-off
         roll): either way the attitude errors the models first meet, a hand-over's or
         the configured heading's, have not yet been renewed by any measurement
-        (docs/filter-notes.md, "the hand-over counted as a coast's
+        (docs/notes/filter-notes.md, "the hand-over counted as a coast's
         end").
     count_by_prior_weight : bool
         Outside the hand-over and coasts, scale the sideslip update's two counts by the
@@ -326,7 +326,8 @@ class NavFilter:
         (:func:`filters.vehicle_model.prior_weighted_count`): in GPS-held flight, where
         the prior along the constraint is hundreds to thousands of times R, the count
         falls to about 1 and the constraint's direction keeps the remainder's own
-        variance after the update (docs/filter-notes.md, "the count by the prior's weight"). The
+        variance after the update (docs/notes/filter-notes.md, "the count by the prior's weight").
+        The
         angle-of-attack update keeps its counts: its prior along the constraint holds
         the lift law's states, which persist from one update to the next rather than
         being fresh process noise. False (the default): the configured counts everywhere.
@@ -352,7 +353,7 @@ class NavFilter:
           dtheta x (dtheta x v) / 2``, takes ``c``'s mean and covariance (estimates and
           the GPS velocity fix).
 
-        False (the default): the NED velocity error (docs/filter-notes.md, "the velocity
+        False (the default): the NED velocity error (docs/notes/filter-notes.md, "the velocity
         error in the body frame, with the reset's Jacobian").
 
     Attributes
@@ -1741,7 +1742,7 @@ class NavFilter:
         NED error while the last GPS velocity or either vehicle model's last update failed
         its gate: the body-frame error trusts P's attitude, and a hand-over told 1 deg while
         15 deg off otherwise fused GPS velocities through it for a second longer and
-        relearned its tilt twice as badly (docs/filter-notes.md).
+        relearned its tilt twice as badly (docs/notes/filter-notes.md).
         """
         if not self.body_velocity_error:
             return False
@@ -1942,7 +1943,7 @@ class NavFilter:
         # variance into the tilt's rows at every tilt correction, which the fixes then
         # read as heading information: at rest (`static`, 16 runs) the heading's sigma
         # fell from 5.0 to 3.6 deg while its error stayed at 5.8 deg rms (z^2 2.83);
-        # held, 4.9-5.0 deg and 0.92-1.00 (docs/filter-notes.md, "the zero-rate update
+        # held, 4.9-5.0 deg and 0.92-1.00 (docs/notes/filter-notes.md, "the zero-rate update
         # at rest")
         hx, hy, hz = dth.tolist()
         hx, hy, hz = 0.5 * hx, 0.5 * hy, 0.5 * hz

@@ -8,7 +8,7 @@ and none along the wind-normal axis ``[-sin alpha, 0, cos alpha]``.
 what those updates use that needs no filter state: the constraint axes, the second-order
 remainder of their linearisation (its moments, and how many consecutive updates share
 one value of it), the lift-off blend's spread beyond its linear term, and the record of
-one update. Why each count has its value: docs/filter-notes.md ("the sideslip remainder
+one update. Why each count has its value: docs/notes/filter-notes.md ("the sideslip remainder
 is correlated", "the remainder counted longer in a coast").
 """
 
@@ -26,7 +26,8 @@ from ngnav.motion import min_jerk_step
 #: (measured on ``uav-survey``, 6 runs: lag-1 correlation 0.97 in the outage, 0.8 while
 #: GPS holds); as white noise the filter would average it down over many updates and
 #: turn optimistic in the coast. Counting it 4 times treats one remainder in four
-#: updates (0.8 s) as new: see docs/filter-notes.md ("the sideslip remainder") for what 1, 4, 10 and
+#: updates (0.8 s) as new: see docs/notes/filter-notes.md ("the sideslip remainder") for what 1, 4,
+#: 10 and
 #: 40 gave.
 SIDESLIP_REMAINDER_UPDATES = 4.0
 #: Times the body-velocity updates count the variance of the remainder's attitude-product
@@ -35,7 +36,7 @@ SIDESLIP_REMAINDER_UPDATES = 4.0
 #: model: the rotation about the constraint axis, the pitch, times the roll about the
 #: velocity), so no update shrinks it and it lasts as long as the tilt errors do: 40 is
 #: the remainder's integrated autocorrelation measured on ``uav-survey``'s outage (38-41
-#: updates, docs/filter-notes.md "the sideslip remainder"; ``python -m studies.remainder``
+#: updates, docs/notes/filter-notes.md "the sideslip remainder"; ``python -m studies.remainder``
 #: measures it on any flight). Both counts are the defaults of ``filter.remainder_updates`` and
 #: ``filter.attitude_remainder_updates``. Counted like the rest (4) it turned a hand-over's
 #: 1 deg roll and pitch errors into a pitch and angle of attack 2-3 times surer than
@@ -71,7 +72,8 @@ BODY_REMAINDER_MAX_INTERVAL_S = 1.0
 #: noise is the noise in the predicted angle, and the update's gain times its innovation
 #: then has a mean (``-K Var(u)`` along ``u``): errors in variables, which push the offset
 #: and ``K`` apart along the direction a steady load cannot see (``uav-survey``, 12 runs:
-#: +0.58 / -0.53 sigma at 540 s, -0.00 / +0.08 with the lag; docs/filter-notes.md "the lift law's
+#: +0.58 / -0.53 sigma at 540 s, -0.00 / +0.08 with the lag; docs/notes/filter-notes.md "the lift
+#: law's
 #: Jacobian takes the load two blocks back"). The pipeline's load is extrapolated from
 #: this block and the last one, so two blocks back is the nearest load whose noise is
 #: independent of it.

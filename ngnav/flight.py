@@ -125,7 +125,7 @@ class Profile:
         run, since the ramps of a flight start on the sample grid: the lift law's
         angle of attack puts this jerk into the pitch acceleration, and ``tactical``'s
         level-off (a 5 deg pitch ramp over 1 s) then left its pitch rate 1.14 mrad/s
-        off in every run (docs/filter-notes.md, "the pitch jerk's jumps on the sample
+        off in every run (docs/notes/filter-notes.md, "the pitch jerk's jumps on the sample
         grid").
         """
         t = np.asarray(t_s, dtype=float)

@@ -156,11 +156,11 @@ class FilterSettings:
     consecutive updates (at ``vehicle_model_rate_hz``) that share one value of it
     (``filters.vehicle_model.remainder_variance``; the attitude part never fewer times than
     the whole). The defaults, 4 and 40, are what ``uav-survey`` was tuned and
-    measured with (docs/filter-notes.md, "the sideslip remainder"); ``tactical`` counts the
+    measured with (docs/notes/filter-notes.md, "the sideslip remainder"); ``tactical`` counts the
     attitude part 7 times, its measured persistence after the hand-over, which
     counts the whole remainder ``coast_remainder_updates`` times for the coast's
     hold from the vehicle models' first update (after a configured alignment at once,
-    after a static one in the take-off roll; docs/filter-notes.md, "the hand-over counted
+    after a static one in the take-off roll; docs/notes/filter-notes.md, "the hand-over counted
     as a coast's end"). ``python -m studies.remainder`` measures what a flight's remainders
     actually need, against its truth.
 
@@ -173,7 +173,7 @@ class FilterSettings:
     of its variance one block counts (``1 + 2 sum_k rho_k`` of its autocorrelation;
     over ``tactical``'s roll-ins the angular acceleration's reads 0.72, 0.3 and 0.1
     at lags of 1, 2 and 5 blocks). 1, 2 and 3 were tried on 100 ``tactical`` runs
-    and 1 and 2 over ten draws of 50 (docs/filter-notes.md, "the forecast's error"): without
+    and 1 and 2 over ten draws of 50 (docs/notes/filter-notes.md, "the forecast's error"): without
     ``forecast_correction`` 2 meets the target on one draw, 1 on none; with it (as
     ``tactical.toml`` ships) 1 meets it on two. 0 switches it off.
 
@@ -184,13 +184,15 @@ class FilterSettings:
     ``filters.ekf.NavFilter.remove_feature_residual``), and from the history the next
     forecasts read. The forecast's error in a given manoeuvre has the same sign in every
     run, which no noise term removes; on ``tactical`` it biased the lift law's ``K``
-    by 1.5 sigma after the roll-out (docs/filter-notes.md, "`tactical`'s angle of attack after the
+    by 1.5 sigma after the roll-out (docs/notes/filter-notes.md, "`tactical`'s angle of attack
+    after the
     roll-out"). Off by default; ``tactical.toml`` turns it on with persistence 1, which
     over ten draws of 50 runs cut the misses below 90 % from 19 to 13 and centred the
     attitude and the angle of attack (persistence 0 with a halved angle-of-attack walk
-    turned the rate, attitude and angle of attack optimistic; docs/filter-notes.md, "the forecast's
+    turned the rate, attitude and angle of attack optimistic; docs/notes/filter-notes.md, "the
+    forecast's
     error taken out of the state"). On ``uav-survey``'s five draws it left the same
-    misses, each a little smaller, so the survey ships without it (docs/filter-notes.md).
+    misses, each a little smaller, so the survey ships without it (docs/notes/filter-notes.md).
 
     ``coast_remainder_updates`` (>= 1, default 40) replaces ``remainder_updates``
     while the filter coasts: from ``coast_after_s`` (default 1 s) or five intervals
@@ -207,7 +209,8 @@ class FilterSettings:
     ``attitude_remainder_updates`` count updates at this rate. Updating about once per
     decorrelation interval of the remainder, consecutive updates share little of it and
     the count can be 1, which removes the dip the count makes after each update
-    (docs/filter-notes.md, "the vehicle model at the remainder's own interval"). Both scenarios
+    (docs/notes/filter-notes.md, "the vehicle model at the remainder's own interval"). Both
+    scenarios
     keep 5 Hz: at 1 Hz ``tactical``'s rate read optimistic over ten draws (3.06) and
     ``uav-survey``'s dip stayed (its attitude part still counted 8 times).
 
@@ -220,7 +223,7 @@ class FilterSettings:
     is hundreds to thousands of times R (fresh process noise), the update replaces the constraint's
     combination by the measurement, and the gain is the same to ``(n - 1) R / (h P h^T)``
     either way, so the count only left the constraint's direction several times too
-    uncertain after each update: the joint NEES's dip (docs/filter-notes.md, "the count by
+    uncertain after each update: the joint NEES's dip (docs/notes/filter-notes.md, "the count by
     the prior's weight"). The angle-of-attack update keeps its counts: its prior along
     the constraint holds the lift law's states, which persist from update to update, and
     weighted like the sideslip's it turned ``uav-survey``'s attitude and rate optimistic.
@@ -238,7 +241,7 @@ class FilterSettings:
     the NED error otherwise. On in ``tactical`` (with ``coast_remainder_updates = 10``),
     where it lifts the joint NEES from 84.0 to 89.7 % inside on runs 0-49 (at f2cb205);
     off in ``uav-survey``, whose coast's end it left optimistic and whose joint it lowered
-    while GPS holds (docs/filter-notes.md, "the velocity error in the body frame, with the
+    while GPS holds (docs/notes/filter-notes.md, "the velocity error in the body frame, with the
     reset's Jacobian" and "Not met yet").
 
     ``rest_rate_sigma_dps`` > 0 (default 0: off) adds the zero-rate update at detected
@@ -250,7 +253,7 @@ class FilterSettings:
     with the rates, and GPS sees no heading without a horizontal acceleration): without
     the update two minutes at rest (``static``) lost the heading with a yaw-rate sigma
     that stopped at 1.6 deg/s (0.028 rad/s) while the error grew to 11 deg/s by 120 s
-    (docs/filter-notes.md, "two minutes at rest"). Rest is the static alignment's,
+    (docs/notes/filter-notes.md, "two minutes at rest"). Rest is the static alignment's,
     going on, or one the GPS velocity and the array's steadiness confirm for 1 s; any
     change of the array's output, a fix that reads motion, or a rejected update ends it.
     A spin at constant rate with no angular acceleration (a multirotor yawing in hover)
