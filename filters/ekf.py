@@ -1404,7 +1404,7 @@ class NavFilter:
         return self.body_velocity_model(q_nb, vel_ned_mps, LATERAL)
 
     def update_sideslip(self, sigma_rad: float, min_speed_mps: float) -> float | None:
-        """Zero-sideslip pseudo-measurement (see ``FilterSettings.sideslip_sigma_deg``).
+        """Zero-sideslip pseudo-measurement (a fixed-wing's, ``vehicle.kind``).
 
         R is the sigma's lateral velocity squared (at the horizontal speed) plus the
         second-order remainder's variance as :func:`remainder_variance` counts it (it
@@ -1423,7 +1423,7 @@ class NavFilter:
         return nis
 
     def update_angle_of_attack(self, sigma_rad: float, min_speed_mps: float) -> float | None:
-        """Angle-of-attack pseudo-measurement (``FilterSettings.aoa_sigma_deg``).
+        """Angle-of-attack pseudo-measurement (a fixed-wing's).
 
         The velocity along the wind-normal axis ``[-sin alpha, 0, cos alpha]`` (FRD;
         ``alpha`` the ``AOA`` state, or zero without it: the body z axis) is measured
@@ -1530,7 +1530,7 @@ class NavFilter:
         update since: what
         :meth:`current_remainder_updates` decides, without its counting (a query).
         The pipeline runs the vehicle model at 5 Hz then, and at its own rate
-        otherwise (``FilterSettings.vehicle_model_rate_hz``).
+        otherwise (5 Hz, ``filters.pipeline.SIDESLIP_RATE_HZ``).
         """
         return (
             self._coasting()

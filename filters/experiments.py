@@ -568,7 +568,7 @@ def consistency(
     import dask
     from tqdm import tqdm
 
-    method = method or scn.filter.compensation
+    method = method or scn.compensation.method
     if runs < 1:
         raise ValueError(f"runs must be at least 1, got {runs}")
     if sets < 1:

@@ -32,7 +32,14 @@ from filters.ekf import FilterNoise, NavFilter, static_mean_walk_s
 from filters.rest import RestDetector
 from filters.state import ATT, POS, RATE, VEL
 from filters.updates import update_correlated
-from filters.vehicle_model import LATERAL, VERTICAL, BodyVelocityRecord
+from filters.vehicle_model import (
+    CALM_AIR_SIGMA_DEG,
+    LATERAL,
+    VERTICAL,
+    ZERO_LIFT_AOA_DEG,
+    ZERO_LIFT_AOA_SIGMA_DEG,
+    BodyVelocityRecord,
+)
 from ngnav.compensation import _QUAD_I, _QUAD_J
 from ngnav.conventions import G0_MPS2
 from ngnav.errors import CovarianceError, LostTrackError
@@ -46,6 +53,23 @@ from ngnav.records import ArraySamples, Estimates, GpsInnovations, NavEstimate, 
 from ngnav.rotation import dcm_from_quat, euler_from_quat
 from ngnav.runconfig import RunConfig
 
+#: The innovation gate: a measurement whose NIS exceeds the chi-square quantile of this
+#: probability (for its own dof) is rejected and counted: about one good fix in 10^4.
+GATE_PROBABILITY = 0.9999
+#: The first fix after this long without an accepted GPS position is not fused but puts
+#: position and velocity on it (PX4 EKF2's reset after a fusion timeout): a long coast
+#: builds its cross-covariances on a drifted trajectory, and fusing a large innovation
+#: through them left ``uav-survey``'s vertical velocity several sigma off for 30 s, s.
+GPS_GAP_RESET_S = 5.0
+#: The GM(1,1) forecast's window, blocks (the paper's).
+GM_WINDOW = 5
+#: The body-rate range the forecasts are held to, rad/s.
+RATE_RANGE_RPS = float(np.deg2rad(200.0))
+#: Held samples (invalid or saturated): the forecast that replaces them drifts from the
+#: motion as a random walk of this angular acceleration, rad/s^2 per sqrt(s), and force,
+#: m/s^2 per sqrt(s).
+HOLD_WDOT_SIGMA_RPS2 = 2.0
+HOLD_FORCE_SIGMA_MPS2 = 3.0
 #: Consecutive rejected GPS positions after which the filter is put back on the fix.
 RESET_AFTER_REJECTS = 25
 #: Time constant of the angular acceleration the position states' Jacobian uses, s.
@@ -68,8 +92,7 @@ FORECAST_ERROR_BLOCKS = 5
 FORECAST_ERROR_GATE = 2.0
 #: Rate of the vehicle model's updates (sideslip and angle of attack, when configured)
 #: over the hand-over and coasts (``NavFilter.counts_as_coast``), where the coast's count
-#: is in updates at this rate; elsewhere ``filter.vehicle_model_rate_hz`` (this by
-#: default), Hz.
+#: is in updates at this rate; elsewhere too (the rate is fixed), Hz.
 SIDESLIP_RATE_HZ = 5.0
 #: GPS velocities rejected in a row after which the vehicle model (sideslip and angle
 #: of attack) pauses until one is accepted again. A state the velocity fixes contradict
@@ -173,7 +196,7 @@ def filter_noise(
     bias_effect = None
     block_wdot_cov = None
     if feedback is not None:
-        if not cfg.filter.forecast_correction:
+        if not cfg.compensation.forecast_correction:
             # one block's own angular-acceleration noise is the raw solve's; with the
             # forecast's correction it is not: the correction takes E_6 of the block's
             # forecast error out, its own noise included, which leaves (I - E_6) n ~ A n
@@ -263,6 +286,11 @@ class Pipeline:
         If the covariance stops being symmetric positive definite.
     """
 
+    #: The innovation gate's probability, for outputs that report test ratios.
+    gate_probability = GATE_PROBABILITY
+    #: How long after an accepted GPS position an estimate counts as GPS aided, s.
+    gps_gap_s = GPS_GAP_RESET_S
+
     def __init__(
         self,
         cfg: RunConfig,
@@ -277,7 +305,7 @@ class Pipeline:
         keep_estimates: bool = True,
         body_velocity_log: list[BodyVelocityRecord] | None = None,
     ) -> None:
-        method = compensation or cfg.filter.compensation
+        method = compensation or cfg.compensation.method
         if method == "oracle" and (true_layout is None or truth is None):
             raise ValueError(
                 "compensation 'oracle' needs the true geometry and motion (simulations)"
@@ -541,32 +569,33 @@ class Pipeline:
             # estimate), or the configuration leaves the scatter unmodelled
             noise = replace(noise, position_sigma_m=0.0)
         self.noise = noise
-        hold_s = cfg.filter.coast_remainder_updates / SIDESLIP_RATE_HZ
+        veh = cfg.vehicle
+        hold_s = veh.coast_remainder_updates / SIDESLIP_RATE_HZ
+        aoa_prior_sigma_deg = ZERO_LIFT_AOA_SIGMA_DEG if veh.fixed_wing else 0.0
         nf = NavFilter(
             noise,
             self._pairs,
             cfg.antenna_b_m,
-            cfg.filter.gate_probability,
+            GATE_PROBABILITY,
             sensor_axes_b=cfg.layout.axes_b,
             solve_matrix=self._smat,
-            aoa_prior_sigma_rad=float(np.deg2rad(cfg.filter.aoa_prior_sigma_deg)),
-            aoa_rw_rad_rts=float(np.deg2rad(cfg.filter.aoa_rw_deg_rts)),
-            aoa_lift_k_m=cfg.filter.aoa_lift_k_m,
-            liftoff_speed_mps=cfg.filter.liftoff_speed_mps,
-            aoa_lift_k_sigma_m=cfg.filter.aoa_lift_k_sigma_m,
+            aoa_prior_sigma_rad=float(np.deg2rad(aoa_prior_sigma_deg)),
+            aoa_rw_rad_rts=float(np.deg2rad(veh.aoa_walk_deg_rts)),
+            aoa_lift_k_m=veh.lift_k_m,
+            liftoff_speed_mps=veh.liftoff_speed_mps,
+            aoa_lift_k_sigma_m=veh.lift_k_sigma_m,
             quad_feedback=None if se is None else se[6:, 6:12],
-            remainder_updates=cfg.filter.remainder_updates,
-            attitude_remainder_updates=cfg.filter.attitude_remainder_updates,
-            coast_remainder_updates=cfg.filter.coast_remainder_updates,
-            coast_after_s=cfg.filter.coast_after_s,
+            remainder_updates=veh.remainder_updates,
+            attitude_remainder_updates=veh.attitude_remainder_updates,
+            coast_remainder_updates=veh.coast_remainder_updates,
             # a coast's remainder lasts its count of updates after the coast
             coast_hold_s=hold_s,
             # a hand-over's attitude errors are a coast's, and so are those the models
             # first meet after a static alignment (the configured heading's): counted
             # so for as long from the models' first update
             handover_hold_s=hold_s,
-            count_by_prior_weight=cfg.filter.count_by_prior_weight,
-            body_velocity_error=cfg.filter.body_velocity_error,
+            count_by_prior_weight=veh.fixed_wing,
+            body_velocity_error=veh.body_velocity_error,
         )
         nf.body_velocity_log = self.body_velocity_log
         self.nf = nf
@@ -574,13 +603,13 @@ class Pipeline:
         self._nq = nq
         g_ranges = np.repeat(
             [
-                np.deg2rad(cfg.filter.rate_range_dps),
+                RATE_RANGE_RPS,
                 cfg.range_mps2 / (cfg.layout.lever_arm_m or 0.1),
                 cfg.range_mps2,
             ],
             3,
         )
-        self.predictor = _predictor(self.method, cfg.filter.window, g_ranges)
+        self.predictor = _predictor(self.method, GM_WINDOW, g_ranges)
         window = self.predictor.window if self.predictor is not None else 1
         self._window = window
         f_t, f_ned, f_vel, f_sig, f_vacc, _ = first
@@ -638,7 +667,7 @@ class Pipeline:
             f_vacc,
             att_sigma,
             np.deg2rad(ini.rate_sigma_dps),
-            aoa_rad=float(np.deg2rad(cfg.filter.aoa_prior_deg)),
+            aoa_rad=float(np.deg2rad(ZERO_LIFT_AOA_DEG if veh.fixed_wing else 0.0)),
         )
         if ini.alignment == "static":
             # the levelled attitude absorbs the horizontal force bias: correlate them exactly
@@ -710,9 +739,11 @@ class Pipeline:
             )
         nf.set_last_sample(first_row[0:3], first_row[3:6])
         self._with_dr = nf.layout.n_dr > 0
-        self._slip_sigma = np.deg2rad(cfg.filter.sideslip_sigma_deg)
-        self._aoa_sigma = np.deg2rad(cfg.filter.aoa_sigma_deg)
-        self._model_rate_hz = cfg.filter.vehicle_model_rate_hz
+        # the fixed-wing's calm-air models (none for a free vehicle)
+        calm_air_sigma_deg = CALM_AIR_SIGMA_DEG if cfg.vehicle.fixed_wing else 0.0
+        self._slip_sigma = np.deg2rad(calm_air_sigma_deg)
+        self._aoa_sigma = np.deg2rad(calm_air_sigma_deg)
+        self._model_rate_hz = SIDESLIP_RATE_HZ
         self._t_last_slip = -np.inf
         self._f_load_prev: np.ndarray | None = None
         self._k_load_prev = 1  # samples measured in the block f_load_prev came from
@@ -725,8 +756,9 @@ class Pipeline:
         self._phi_hat = np.zeros(12) if self.predictor is not None else None
         # the forecast's error (see _forecast_noise): its noise floor, the block means'
         # own noise plus what the forecast carries of the history's
-        self._fe_persistence = cfg.filter.forecast_error_persistence if se is not None else 0.0
-        self._fe_correct = bool(cfg.filter.forecast_correction) and se is not None
+        comp = cfg.compensation
+        self._fe_persistence = comp.forecast_error_persistence if se is not None else 0.0
+        self._fe_correct = bool(comp.forecast_correction) and se is not None
         self._fe_d2 = np.zeros(6)
         #: The noise in :attr:`last_forecast_error` of a block of one sample, (6,):
         #: ``(1 + g) N`` with ``N`` the raw feature noise variance per sample and ``g``
@@ -736,8 +768,8 @@ class Pipeline:
             gain = noise_gain(self.predictor, self._hist[:window, 0:9])[3:9]
             self.forecast_error_floor = (1.0 + gain) * np.diag(self.solver.covariance())[0:6]
         self._full_check_every = max(1, round(cfg.filter.rate_hz))  # Cholesky once a second
-        # the zero-rate update at detected rest (filter.rest_rate_sigma_dps > 0)
-        self._rest_sigma = float(np.deg2rad(cfg.filter.rest_rate_sigma_dps))
+        # the zero-rate update at detected rest (rest.rate_sigma_dps > 0)
+        self._rest_sigma = float(np.deg2rad(cfg.rest.rate_sigma_dps))
         self.rest: RestDetector | None = None
         if self._rest_sigma > 0.0:
             # the blocks' own noise: the raw solve's (a little less with the forecast's
@@ -1071,13 +1103,12 @@ class Pipeline:
 
     def _hold_noise(self, bad: np.ndarray, dt: float) -> None:
         """Add the forecast's error over the held runs of this block (see FilterSettings)."""
-        fs = self.cfg.filter
         t_run = self._t_hold
         for held in bad.tolist():
             if held:
                 t_new = t_run + dt
                 self.nf.add_hold_noise(
-                    t_run, t_new, fs.hold_wdot_sigma_rps2, fs.hold_force_sigma_mps2
+                    t_run, t_new, HOLD_WDOT_SIGMA_RPS2, HOLD_FORCE_SIGMA_MPS2
                 )
                 t_run = t_new
             else:
@@ -1090,7 +1121,7 @@ class Pipeline:
         nf = self.nf
         truth = self.truth
         t_fix, ned, vel, sig, vacc, _ = fix
-        gap_reset_s = self.cfg.filter.gps_gap_reset_s
+        gap_reset_s = GPS_GAP_RESET_S
         gap = gap_reset_s > 0 and nf.t_s - nf.t_last_position_fix > gap_reset_s
         resets_before = nf.counters.gps_resets + nf.counters.gps_gap_resets
         res = nf.update_gps(ned, vel, sig, vacc, t_fix - nf.t_s, reset=gap)
@@ -1219,7 +1250,7 @@ def run_filter(
     cfg : RunConfig
         What the filter knows (see :mod:`ngnav.runconfig`).
     compensation : str, optional
-        Override ``cfg.filter.compensation``.
+        Override ``cfg.compensation.method``.
     use_gps : bool
         False runs the array alone after initialisation (the drift).
     true_layout : ArrayLayout, optional

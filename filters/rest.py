@@ -25,7 +25,7 @@ What it cannot see: a steady spin with no angular acceleration and no change of 
 update's own gate (:meth:`filters.ekf.NavFilter.update_zero_rate`) rejects the update
 when the filter's rate contradicts zero, which ends the rest (:meth:`RestDetector.interrupt`);
 a spin that starts before the filter does is not caught, which is why the update is off
-by default (``filter.rest_rate_sigma_dps``).
+by default (``rest.rate_sigma_dps``).
 
 This is the stance-phase idea of zero-velocity detectors for inertial navigation
 (Skog, Handel, Nilsson and Rantakokko, "Zero-velocity detection: an algorithm

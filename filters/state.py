@@ -51,7 +51,7 @@ both; ``uav-survey``), the states have nothing to learn and are left out.
 
 Why ``AOA``: an aircraft's velocity leaves its body x axis by the angle of
 attack, which its lift needs: it grows with load factor and falls with speed.
-The vehicle model (``FilterSettings.aoa_sigma_deg``) measures the velocity
+The fixed-wing vehicle model (``vehicle.kind``) measures the velocity
 along the wind-normal axis ``[-sin alpha, 0, cos alpha]`` (FRD) as zero, which
 ties the pitch to the flight path plus ``alpha``. With the airframe's lift law
 (``aoa_lift_k_m``) ``alpha = w(V) (alpha_b + K n_w / V^2)`` follows every change

@@ -30,6 +30,15 @@ from ngnav.motion import min_jerk_step
 #: 10 and
 #: 40 gave.
 SIDESLIP_REMAINDER_UPDATES = 4.0
+#: A fixed-wing's calm-air models' 1-sigma, deg: the ground velocity lies in the body's
+#: x-z plane (no sideslip) and leaves the body x axis by the angle of attack alone. Calm
+#: air makes both exact; this is a numerical floor, the models' second-order remainders
+#: and the lift law's noise carry their real uncertainty in R.
+CALM_AIR_SIGMA_DEG = 3e-6
+#: A fixed-wing's zero-lift angle of attack before flight, deg, and its 1-sigma: a
+#: cambered wing's few degrees either way; the flight learns it while GPS holds.
+ZERO_LIFT_AOA_DEG = -1.5
+ZERO_LIFT_AOA_SIGMA_DEG = 1.0
 #: Times the body-velocity updates count the variance of the remainder's attitude-product
 #: part (the ``dtheta^T A dtheta / 2`` of :meth:`filters.ekf.NavFilter.body_velocity_second_order`).
 #: That part multiplies two attitude errors the constraint cannot see (for the sideslip

@@ -101,7 +101,7 @@ def run(
     config : RunConfig
         What the filter knows (a run directory's ``config.toml``).
     compensation : str, optional
-        Override ``config.filter.compensation`` (``gm11``, ``line``, ``last``, ``none``).
+        Override ``config.compensation.method`` (``gm11``, ``line``, ``last``, ``none``).
     use_gps : bool
         False runs the array alone after initialisation.
 

@@ -24,9 +24,15 @@ from typing import Any
 import numpy as np
 
 from ngnav.flight import FlightPlan, LiftLaw, Profile, Transition
-from ngnav.runconfig import FilterSettings
 from ngnav.scenario import _build, apply_overrides, read_scenario_data
 from ngnav.sensors import PRESET_NAMES, AccelerometerSpec, sensor_preset
+from ngnav.settings import (
+    CompensationSettings,
+    FilterSettings,
+    RestSettings,
+    VehicleSettings,
+    migrate_legacy,
+)
 
 
 @dataclass(frozen=True)
@@ -138,6 +144,9 @@ class FlightScenario:
     legs: tuple[Leg, ...]
     initial_speed_mps: float = 0.0
     initial_aoa_deg: float = 0.0
+    compensation: CompensationSettings = dataclasses.field(default_factory=CompensationSettings)
+    vehicle: VehicleSettings = dataclasses.field(default_factory=VehicleSettings)
+    rest: RestSettings = dataclasses.field(default_factory=RestSettings)
     lift: LiftLaw | None = None
     #: 1-sigma of one aircraft's (alpha0 rad, K m) about the type's law, or None.
     lift_scatter: tuple[float, float] | None = None
@@ -193,6 +202,12 @@ _SECTIONS = {
     "initial": InitialConfig,
     "filter": FilterSettings,
 }
+#: Sections a scenario may leave out (their defaults apply).
+_OPTIONAL_SECTIONS = {
+    "compensation": CompensationSettings,
+    "vehicle": VehicleSettings,
+    "rest": RestSettings,
+}
 
 
 def _legs(value: Any, source: str) -> tuple[Leg, ...]:
@@ -212,8 +227,11 @@ def _legs(value: Any, source: str) -> tuple[Leg, ...]:
 def load_flight(name_or_path: str, overrides: list[str] | None = None) -> FlightScenario:
     """Load a flight scenario (shipped name or path), applying ``section.key=value`` overrides."""
     data, source = read_scenario_data(name_or_path)
+    data = migrate_legacy(data, source)
+    for section in _OPTIONAL_SECTIONS:
+        data.setdefault(section, {})
     data = apply_overrides(data, overrides or [], source)
-    known = set(_SECTIONS) | {"flight"}
+    known = set(_SECTIONS) | set(_OPTIONAL_SECTIONS) | {"flight"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise ValueError(f"{source}: unknown section [{unknown[0]}]")
@@ -221,6 +239,8 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
     for section, cls in _SECTIONS.items():
         if section not in data:
             raise ValueError(f"{source}: missing section [{section}]")
+        parts[section] = _build(cls, data[section], section, source)
+    for section, cls in _OPTIONAL_SECTIONS.items():
         parts[section] = _build(cls, data[section], section, source)
     flight = data.get("flight")
     if not isinstance(flight, dict) or "legs" not in flight:

@@ -26,18 +26,14 @@ truth to separate files.
     [initial]      alignment = "static"|"config", static_s, roll_deg, pitch_deg,
                    yaw_deg, tilt_sigma_deg, heading_source = "config"|"gps",
                    heading_sigma_deg, rate_dps = [x, y, z], rate_sigma_dps
-    [filter]       rate_hz, compensation, window, gate_probability, rate_range_dps,
-                   sideslip_sigma_deg, aoa_sigma_deg, aoa_prior_deg,
-                   aoa_prior_sigma_deg, aoa_rw_deg_rts, aoa_lift_k_m, aoa_lift_k_sigma_m,
-                   liftoff_speed_mps,
-                   gps_gap_reset_s, fusion_lag_s,
-                   hold_wdot_sigma_rps2, hold_force_sigma_mps2, position_states,
-                   remainder_updates, attitude_remainder_updates,
-                   coast_remainder_updates, coast_after_s,
-                   forecast_error_persistence, forecast_correction,
-                   vehicle_model_rate_hz, count_by_prior_weight,
-                   body_velocity_error, rest_rate_sigma_dps
-                   (each explained in FilterSettings' docstring)
+    [filter]       rate_hz, fusion_lag_s, position_states
+    [compensation] method, forecast_error_persistence, forecast_correction
+    [vehicle]      kind = "free"|"fixed-wing", lift_k_m, lift_k_sigma_m, liftoff_speed_mps,
+                   aoa_walk_deg_rts, body_velocity_error, remainder_updates,
+                   attitude_remainder_updates, coast_remainder_updates
+    [rest]         rate_sigma_dps
+                   (the last four optional; each setting's unit and default in
+                   :mod:`ngnav.settings`)
 """
 
 from __future__ import annotations
@@ -45,12 +41,34 @@ from __future__ import annotations
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 
 from ngnav.layout import ArrayLayout
 from ngnav.mounting import MountingErrors
+from ngnav.settings import (
+    COMPENSATIONS,
+    CompensationSettings,
+    FilterSettings,
+    RestSettings,
+    VehicleSettings,
+    migrate_legacy,
+)
+
+__all__ = [
+    "COMPENSATIONS",
+    "CompensationSettings",
+    "FilterSettings",
+    "InitialSettings",
+    "RestSettings",
+    "RunConfig",
+    "VehicleSettings",
+    "read_run_config",
+    "read_run_config_text",
+    "run_config_text",
+    "write_run_config",
+]
 
 
 @dataclass(frozen=True)
@@ -82,299 +100,6 @@ class InitialSettings:
             raise ValueError(f"initial.rate_dps must be 3 finite numbers, got {self.rate_dps}")
 
 
-#: Compensation choices of the filter's front end.
-COMPENSATIONS: tuple[str, ...] = ("gm11", "none", "line", "last", "oracle")
-
-
-@dataclass(frozen=True)
-class FilterSettings:
-    """Filter rate (Hz), compensation method, GM window, gate and rate range (deg/s).
-
-    ``sideslip_sigma_deg`` > 0 adds the fixed-wing vehicle model: at 5 Hz
-    (through GPS outages too) and above 5 m/s ground speed, the body-lateral
-    velocity is measured as zero with a 1-sigma of
-    ``speed * tan(sideslip_sigma_deg)``. It assumes the
-    ground velocity lies in the body's x-z plane (calm air, or a crab angle
-    within that sigma); 0 (the default) leaves it out. With the model on, a
-    heading that contradicts the GPS course (beyond the 1-dof gate) is put on
-    the course after a GPS reset, or after 25 sideslip updates in a row fail
-    their gate while GPS velocity is accepted (``NavFilter.check_heading_against_course``,
-    counted as "heading resets to the GPS course"): a heading 180 deg off also
-    has zero lateral velocity, and one tens of degrees off never passes the gate.
-
-    ``aoa_sigma_deg`` > 0 adds the same model in the body's x-z plane: with the
-    sideslip updates (and above the same speed), the velocity along the
-    wind-normal axis ``[-sin alpha, 0, cos alpha]`` (FRD) is measured as zero
-    with a 1-sigma of ``|v| tan(aoa_sigma_deg)``: the ground velocity leaves the
-    body x axis by the angle of attack ``alpha`` and by nothing else (calm air).
-    0 (the default) leaves it out.
-
-    ``aoa_prior_sigma_deg`` > 0 carries ``alpha`` as a filter state (``AOA``),
-    starting at ``aoa_prior_deg`` with that 1-sigma and wandering as a random
-    walk of ``aoa_rw_deg_rts`` (deg/sqrt(s)), which must cover how fast the
-    vehicle's angle of attack changes (it follows load factor and speed). The
-    state is learnt while GPS holds the velocity and carries the pitch-to-path
-    tie through an outage. With ``aoa_prior_sigma_deg`` = 0 the model assumes
-    ``alpha`` = 0 (the land-vehicle non-holonomic constraint), which no
-    aircraft keeps: lift needs angle of attack.
-
-    ``aoa_lift_k_m`` > 0 gives the state the airframe's lift law:
-    ``alpha = w(V) (alpha_b + K n_w / V^2)``, ``K = 2 (m/S) / (rho C_La)`` in m,
-    with the wind-frame normal load ``n_w`` from the array's specific force and
-    ``V`` the speed, so the angle of attack follows every change of load factor
-    and speed as the lift asks; the state is then the law's offset ``alpha_b``
-    (the zero-lift angle, prior ``aoa_prior_deg``) and its random walk covers
-    only what the law leaves out. ``aoa_lift_k_sigma_m`` > 0 carries the error of
-    ``K`` (mass, density and lift slope are never known exactly) as a second,
-    constant state with that prior 1-sigma: its effect grows with the load factor,
-    which a random walk on the offset cannot describe. With
-    ``liftoff_speed_mps`` > 0, ``w(V)`` is 0 below 0.8 times that speed (on the
-    wheels: no angle of attack), 1 from it up, a minimum-jerk step between.
-
-    ``gps_gap_reset_s``: the first fix after this long without an accepted
-    GPS position (an outage) is not fused but, if it passes the gate, puts
-    position and velocity on the fix (``NavFilter.reset_to_fix``; PX4 EKF2
-    resets to GPS after a fusion timeout in the same way). A long coast
-    builds its cross-covariances on a drifted trajectory; fusing a large
-    innovation through them left the vertical velocity several sigma off for
-    30 s on ``uav-survey``. 0 switches the reset off.
-
-    ``fusion_lag_s``: how far the filter's fusion horizon runs behind the
-    newest array sample when inputs arrive as a stream (PX4 EKF2's delayed
-    horizon). A GPS fix that arrives within this lag of its time of validity
-    is fused exactly there, as in an offline run; a later one is fused at the
-    next block with a ``v dt`` time shift and counted. Estimates are output
-    at the fusion horizon, so they trail the newest sample by this lag.
-
-    ``position_states``: carry the residual sensor positions as filter states
-    (``DR``, see :mod:`filters.state`) when the calibration gives a position
-    1-sigma; False leaves them out (the scatter is then unmodelled).
-
-    ``remainder_updates`` and ``attitude_remainder_updates`` (each >= 1): how many
-    times the sideslip and angle-of-attack updates count their second-order
-    remainder's variance, and its attitude-product part, in R: the number of
-    consecutive updates (at ``vehicle_model_rate_hz``) that share one value of it
-    (``filters.vehicle_model.remainder_variance``; the attitude part never fewer times than
-    the whole). The defaults, 4 and 40, are what ``uav-survey`` was tuned and
-    measured with (docs/notes/filter-notes.md, "the sideslip remainder"); ``tactical`` counts the
-    attitude part 7 times, its measured persistence after the hand-over, which
-    counts the whole remainder ``coast_remainder_updates`` times for the coast's
-    hold from the vehicle models' first update (after a configured alignment at once,
-    after a static one in the take-off roll; docs/notes/filter-notes.md, "the hand-over counted
-    as a coast's end"). ``python -m studies.remainder`` measures what a flight's remainders
-    actually need, against its truth.
-
-    ``forecast_error_persistence`` (>= 0, default 2): with a forecast compensation
-    (GM(1,1), line, last) the filter measures the forecast's error after each block,
-    from the block's own mean less the forecast, and adds what the compensation
-    left of it to the rate and velocity covariance (``filters.pipeline``, "the
-    forecast's error"). The error of a forecast through a manoeuvre's onset is
-    not white: it persists over a few blocks, and this is how many blocks' worth
-    of its variance one block counts (``1 + 2 sum_k rho_k`` of its autocorrelation;
-    over ``tactical``'s roll-ins the angular acceleration's reads 0.72, 0.3 and 0.1
-    at lags of 1, 2 and 5 blocks). 1, 2 and 3 were tried on 100 ``tactical`` runs
-    and 1 and 2 over ten draws of 50 (docs/notes/filter-notes.md, "the forecast's error"): without
-    ``forecast_correction`` 2 meets the target on one draw, 1 on none; with it (as
-    ``tactical.toml`` ships) 1 meets it on two. 0 switches it off.
-
-    ``forecast_correction`` (default false): with a forecast compensation, after
-    each block remove from the nominal rate, attitude, velocity and position what
-    the forecast's measured error left in the block's features (``E_6 d``, ``d``
-    the block's mean less its forecast, :attr:`filters.pipeline.Pipeline.last_forecast_error`;
-    ``filters.ekf.NavFilter.remove_feature_residual``), and from the history the next
-    forecasts read. The forecast's error in a given manoeuvre has the same sign in every
-    run, which no noise term removes; on ``tactical`` it biased the lift law's ``K``
-    by 1.5 sigma after the roll-out (docs/notes/filter-notes.md, "`tactical`'s angle of attack
-    after the
-    roll-out"). Off by default; ``tactical.toml`` turns it on with persistence 1, which
-    over ten draws of 50 runs cut the misses below 90 % from 19 to 13 and centred the
-    attitude and the angle of attack (persistence 0 with a halved angle-of-attack walk
-    turned the rate, attitude and angle of attack optimistic; docs/notes/filter-notes.md, "the
-    forecast's
-    error taken out of the state"). On ``uav-survey``'s five draws it left the same
-    misses, each a little smaller, so the survey ships without it (docs/notes/filter-notes.md).
-
-    ``coast_remainder_updates`` (>= 1, default 40) replaces ``remainder_updates``
-    while the filter coasts: from ``coast_after_s`` (default 1 s) or five intervals
-    of the GPS fixes received, whichever is longer, without an accepted GPS position until
-    ``coast_remainder_updates / 5 Hz`` seconds after the last such update (the
-    coast's remainder lasts its count of updates after it). 40 is the persistence
-    ``python -m studies.remainder`` measures through ``uav-survey``'s outage. Setting it equal to
-    ``remainder_updates`` turns the switch off.
-
-    ``vehicle_model_rate_hz`` (in (0, 5], default 5): the rate of the sideslip and
-    angle-of-attack updates outside the hand-over and coasts; through those (and their
-    holds) they run at 5 Hz, where ``coast_remainder_updates`` counts 5 Hz updates
-    (``filters.ekf.NavFilter.counts_as_coast``). ``remainder_updates`` and
-    ``attitude_remainder_updates`` count updates at this rate. Updating about once per
-    decorrelation interval of the remainder, consecutive updates share little of it and
-    the count can be 1, which removes the dip the count makes after each update
-    (docs/notes/filter-notes.md, "the vehicle model at the remainder's own interval"). Both
-    scenarios
-    keep 5 Hz: at 1 Hz ``tactical``'s rate read optimistic over ten draws (3.06) and
-    ``uav-survey``'s dip stayed (its attitude part still counted 8 times).
-
-    ``count_by_prior_weight`` (default false): outside the hand-over and coasts, the
-    sideslip update counts the remainder ``1 + (n - 1) w`` times in place of ``n`` (each
-    of its two counts), ``w = R / (h P h^T + R)`` the weight the update keeps on the prior
-    along the constraint (``filters.vehicle_model.prior_weighted_count``). A remainder
-    shared by consecutive updates adds information it does not have only through what an
-    update keeps of the earlier ones. In GPS-held flight the prior along the constraint
-    is hundreds to thousands of times R (fresh process noise), the update replaces the constraint's
-    combination by the measurement, and the gain is the same to ``(n - 1) R / (h P h^T)``
-    either way, so the count only left the constraint's direction several times too
-    uncertain after each update: the joint NEES's dip (docs/notes/filter-notes.md, "the count by
-    the prior's weight"). The angle-of-attack update keeps its counts: its prior along
-    the constraint holds the lift law's states, which persist from update to update, and
-    weighted like the sideslip's it turned ``uav-survey``'s attitude and rate optimistic.
-    Both scenarios turn it on.
-
-    ``body_velocity_error`` (default false): the filter takes its velocity error in the
-    body frame (``filters.ekf.NavFilter.body_velocity_error``): the vehicle models become
-    exactly linear, their attitude-product remainder, which persists as long as the tilt
-    errors do and needed the counts above, is gone, and the velocity rows take the
-    correction's reset Jacobian instead. The velocity a user reads stays NED, with the
-    parametrization's curvature in its mean and covariance. The filter uses it only while
-    its attitude is known to about 2 deg and the last GPS velocity and vehicle-model
-    updates passed their gates (``filters.ekf.NavFilter.in_body_frame``: without that
-    guard a hand-over told 1 deg while 15 deg off relearned its tilt twice as badly), and
-    the NED error otherwise. On in ``tactical`` (with ``coast_remainder_updates = 10``),
-    where it lifts the joint NEES from 84.0 to 89.7 % inside on runs 0-49 (at f2cb205);
-    off in ``uav-survey``, whose coast's end it left optimistic and whose joint it lowered
-    while GPS holds (docs/notes/filter-notes.md, "the velocity error in the body frame, with the
-    reset's Jacobian" and "Not met yet").
-
-    ``rest_rate_sigma_dps`` > 0 (default 0: off) adds the zero-rate update at detected
-    rest (``filters.ekf.NavFilter.update_zero_rate``): at the start of every block while
-    :class:`filters.rest.RestDetector` says the vehicle stands still, the body rate is
-    measured as zero with this 1-sigma per axis (deg/s): the vehicle's rocking on its
-    mounts, or a numerical floor where the rest is exact (the simulated flights: 1e-4).
-    At rest nothing else holds a gyro-free array's yaw rate (the rate products vanish
-    with the rates, and GPS sees no heading without a horizontal acceleration): without
-    the update two minutes at rest (``static``) lost the heading with a yaw-rate sigma
-    that stopped at 1.6 deg/s (0.028 rad/s) while the error grew to 11 deg/s by 120 s
-    (docs/notes/filter-notes.md, "two minutes at rest"). Rest is the static alignment's,
-    going on, or one the GPS velocity and the array's steadiness confirm for 1 s; any
-    change of the array's output, a fix that reads motion, or a rejected update ends it.
-    A spin at constant rate with no angular acceleration (a multirotor yawing in hover)
-    reads as rest to the array: the update's gate rejects it once the filter's rate
-    contradicts zero, but not if the spin began before the filter did. Leave it off for
-    such vehicles.
-    """
-
-    #: Settings that no longer exist, with the behaviour that is now fixed: a file that
-    #: gives that value still reads (docs/design.md, "Settings retired").
-    RETIRED: ClassVar[dict[str, Any]] = {
-        "remainder_off_constraint": False,
-        "position_consider": False,
-        "remainder_consider": False,
-    }
-
-    rate_hz: float = 100.0
-    compensation: str = "gm11"
-    window: int = 5
-    gate_probability: float = 0.9999
-    rate_range_dps: float = 200.0
-    sideslip_sigma_deg: float = 0.0
-    aoa_sigma_deg: float = 0.0
-    aoa_prior_deg: float = 0.0
-    aoa_prior_sigma_deg: float = 0.0
-    aoa_rw_deg_rts: float = 0.0
-    aoa_lift_k_m: float = 0.0
-    aoa_lift_k_sigma_m: float = 0.0
-    liftoff_speed_mps: float = 0.0
-    gps_gap_reset_s: float = 5.0
-    fusion_lag_s: float = 0.1
-    hold_wdot_sigma_rps2: float = 2.0
-    hold_force_sigma_mps2: float = 3.0
-    position_states: bool = True
-    remainder_updates: float = 4.0
-    attitude_remainder_updates: float = 40.0
-    coast_remainder_updates: float = 40.0
-    coast_after_s: float = 1.0
-    forecast_error_persistence: float = 2.0
-    forecast_correction: bool = False
-    vehicle_model_rate_hz: float = 5.0
-    count_by_prior_weight: bool = False
-    body_velocity_error: bool = False
-    rest_rate_sigma_dps: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.compensation not in COMPENSATIONS:
-            raise ValueError(
-                f"filter.compensation must be one of {COMPENSATIONS}, got {self.compensation!r}"
-            )
-        for name in ("sideslip_sigma_deg", "aoa_sigma_deg"):
-            v = getattr(self, name)
-            if not 0.0 <= v < 45.0:
-                raise ValueError(f"filter.{name} must be in [0, 45), got {v}")
-        if not (np.isfinite(self.aoa_prior_deg) and abs(self.aoa_prior_deg) < 30.0):
-            raise ValueError(f"filter.aoa_prior_deg must be in (-30, 30), got {self.aoa_prior_deg}")
-        for name in ("aoa_prior_sigma_deg", "aoa_rw_deg_rts"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and 0.0 <= v <= 30.0):
-                raise ValueError(f"filter.{name} must be a number in [0, 30], got {v}")
-        if self.aoa_prior_sigma_deg > 0 and self.aoa_sigma_deg == 0:
-            raise ValueError(
-                "filter.aoa_prior_sigma_deg > 0 needs filter.aoa_sigma_deg > 0: the "
-                "angle-of-attack state is observed only through that model"
-            )
-        for name in ("aoa_lift_k_m", "aoa_lift_k_sigma_m", "liftoff_speed_mps"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and 0.0 <= v <= 1000.0):
-                raise ValueError(f"filter.{name} must be a number in [0, 1000], got {v}")
-            if v > 0 and self.aoa_prior_sigma_deg == 0:
-                raise ValueError(
-                    f"filter.{name} > 0 needs filter.aoa_prior_sigma_deg > 0 "
-                    "(the angle-of-attack state)"
-                )
-        if self.aoa_rw_deg_rts > 0 and self.aoa_prior_sigma_deg == 0:
-            raise ValueError(
-                "filter.aoa_rw_deg_rts > 0 needs filter.aoa_prior_sigma_deg > 0 "
-                "(the angle-of-attack state)"
-            )
-        if not (np.isfinite(self.gps_gap_reset_s) and self.gps_gap_reset_s >= 0.0):
-            raise ValueError(
-                f"filter.gps_gap_reset_s must be a finite number >= 0, got {self.gps_gap_reset_s}"
-            )
-        if not (np.isfinite(self.rest_rate_sigma_dps) and 0.0 <= self.rest_rate_sigma_dps <= 10.0):
-            raise ValueError(
-                "filter.rest_rate_sigma_dps must be a number in [0, 10], got "
-                f"{self.rest_rate_sigma_dps}"
-            )
-        for name in ("hold_wdot_sigma_rps2", "hold_force_sigma_mps2"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v >= 0.0):
-                raise ValueError(f"filter.{name} must be a finite number >= 0, got {v}")
-        for name in ("remainder_updates", "attitude_remainder_updates", "coast_remainder_updates"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and 1.0 <= v <= 1e4):
-                raise ValueError(f"filter.{name} must be a number in [1, 10000], got {v}")
-        if not (
-            np.isfinite(self.forecast_error_persistence)
-            and 0.0 <= self.forecast_error_persistence <= 100.0
-        ):
-            raise ValueError(
-                "filter.forecast_error_persistence must be a number in [0, 100], got "
-                f"{self.forecast_error_persistence}"
-            )
-        if not (
-            np.isfinite(self.vehicle_model_rate_hz) and 0.0 < self.vehicle_model_rate_hz <= 5.0
-        ):
-            raise ValueError(
-                "filter.vehicle_model_rate_hz must be a number in (0, 5] Hz, got "
-                f"{self.vehicle_model_rate_hz}"
-            )
-        if not (np.isfinite(self.coast_after_s) and 0.0 < self.coast_after_s <= 1e3):
-            raise ValueError(
-                f"filter.coast_after_s must be a number in (0, 1000] s, got {self.coast_after_s}"
-            )
-        if not (np.isfinite(self.fusion_lag_s) and 0.0 <= self.fusion_lag_s <= 10.0):
-            raise ValueError(
-                f"filter.fusion_lag_s must be a number in [0, 10] s, got {self.fusion_lag_s}"
-            )
-
-
 @dataclass(frozen=True)
 class RunConfig:
     """Everything the filter is told about a run (arrays are read-only)."""
@@ -394,6 +119,9 @@ class RunConfig:
     position_sigma_m: float = 0.0
     initial: InitialSettings = field(default_factory=InitialSettings)
     filter: FilterSettings = field(default_factory=FilterSettings)
+    compensation: CompensationSettings = field(default_factory=CompensationSettings)
+    vehicle: VehicleSettings = field(default_factory=VehicleSettings)
+    rest: RestSettings = field(default_factory=RestSettings)
 
     def __post_init__(self) -> None:
         n = self.layout.n_sensors
@@ -482,6 +210,7 @@ def read_run_config_text(text: str, where: str) -> RunConfig:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{p}: not valid TOML: {exc}") from None
+    data = migrate_legacy(data, p)
     for section in ("array", "calibration", "sensor", "reference"):
         if not isinstance(data.get(section), dict):
             raise ValueError(f"{p}: missing section [{section}]")
@@ -521,6 +250,9 @@ def read_run_config_text(text: str, where: str) -> RunConfig:
             position_sigma_m=float(cal.get("position_sigma_m", 0.0)),
             initial=_settings(InitialSettings, data.get("initial"), "initial"),
             filter=_settings(FilterSettings, data.get("filter"), "filter"),
+            compensation=_settings(CompensationSettings, data.get("compensation"), "compensation"),
+            vehicle=_settings(VehicleSettings, data.get("vehicle"), "vehicle"),
+            rest=_settings(RestSettings, data.get("rest"), "rest"),
         )
     except ValueError as exc:
         msg = str(exc)
@@ -574,6 +306,9 @@ def run_config_text(cfg: RunConfig) -> str:
         "gps": {"antenna_b_m": cfg.antenna_b_m},
         "initial": asdict(cfg.initial),
         "filter": asdict(cfg.filter),
+        "compensation": asdict(cfg.compensation),
+        "vehicle": asdict(cfg.vehicle),
+        "rest": asdict(cfg.rest),
     }
     if cfg.layout.lever_arm_m is not None:
         sections["array"]["lever_arm_m"] = float(cfg.layout.lever_arm_m)

@@ -142,29 +142,9 @@ def unknown_name(what: str, name: str, known: Iterable[str]) -> str:
     return f"unknown {what} {name}" + (f" (did you mean {near[0]}?)" if near else "")
 
 
-def _without_retired(cls: type, table: dict, section: str, source: str) -> dict:
-    """Drop keys a settings class retired (its ``RETIRED``: name -> the value now fixed).
-
-    A file written before a setting was retired still reads when it gives the fixed
-    value; any other value is refused, naming the key and the value that now holds.
-    """
-    retired = getattr(cls, "RETIRED", {})
-    out = {}
-    for key, value in table.items():
-        if key not in retired:
-            out[key] = value
-        elif value != retired[key]:
-            raise ValueError(
-                f"{source}: {section}.{key} was retired; it is always {retired[key]!r} now "
-                f"(got {value!r}): remove the key"
-            )
-    return out
-
-
 def _build(cls: type, table: Any, section: str, source: str) -> Any:
     if not isinstance(table, dict):
         raise ValueError(f"{source}: [{section}] must be a table")
-    table = _without_retired(cls, table, section, source)
     hints = get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(table) - set(fields))

@@ -190,6 +190,9 @@ def simulate_flight(scn: FlightScenario, run_index: int = 0) -> SimulatedRun:
         position_sigma_m=m.position_scatter_m,
         initial=initial,
         filter=scn.filter,
+        compensation=scn.compensation,
+        vehicle=scn.vehicle,
+        rest=scn.rest,
     )
     return SimulatedRun(
         truth, samples, saturated, bias, fixes, glitched, config, true_errors, 1.0 + scale_error

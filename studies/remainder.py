@@ -321,10 +321,10 @@ def _one_run(scn: FlightScenario, i: int) -> dict[str, RealizedRemainders] | str
     sim = simulate_flight(scn, i)
     log: list[BodyVelocityRecord] = []
     cfg = sim.config
-    if cfg.filter.body_velocity_error:
+    if cfg.vehicle.body_velocity_error:
         # the study measures the NED velocity error's remainder (realized_remainder);
         # the body-frame error has none at the update to measure
-        cfg = replace(cfg, filter=replace(cfg.filter, body_velocity_error=False))
+        cfg = replace(cfg, vehicle=replace(cfg.vehicle, body_velocity_error=False))
     try:
         run_filter(sim.samples, sim.fixes, cfg, body_velocity_log=log)
     except CovarianceError as exc:
@@ -356,10 +356,9 @@ def remainder_study(
         raise ValueError(f"runs must be at least 1, got {runs}")
     if not (np.isfinite(window_s) and window_s > 0):
         raise ValueError(f"window must be a positive number of seconds, got {window_s}")
-    if scn.filter.sideslip_sigma_deg <= 0 and scn.filter.aoa_sigma_deg <= 0:
+    if not scn.vehicle.fixed_wing:
         raise ValueError(
-            f"scenario {scn.name!r} has no vehicle model (filter.sideslip_sigma_deg and "
-            "filter.aoa_sigma_deg are 0)"
+            f"scenario {scn.name!r} has no vehicle model (vehicle.kind is {scn.vehicle.kind!r})"
         )
     results: list[dict[str, RealizedRemainders] | str] = []
     bar = tqdm(total=runs, desc="remainder", disable=not progress, unit="run")
@@ -393,9 +392,9 @@ def remainder_study(
     return {
         "scenario": scn.name,
         "runs": len(done),
-        "remainder_updates": scn.filter.remainder_updates,
-        "attitude_remainder_updates": scn.filter.attitude_remainder_updates,
-        "coast_remainder_updates": scn.filter.coast_remainder_updates,
+        "remainder_updates": scn.vehicle.remainder_updates,
+        "attitude_remainder_updates": scn.vehicle.attitude_remainder_updates,
+        "coast_remainder_updates": scn.vehicle.coast_remainder_updates,
         "models": models,
         "left_out": left_out,
     }

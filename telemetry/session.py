@@ -56,6 +56,10 @@ class Estimator(Protocol):
     method: str
     started: bool
     n_epochs: int
+    #: The innovation gate's probability (ESTIMATOR_STATUS's test ratios).
+    gate_probability: float
+    #: How long after an accepted GPS position an estimate counts as GPS aided, s.
+    gps_gap_s: float
 
     def push_samples(self, t_s: np.ndarray, accel_mps2: np.ndarray) -> int: ...
 
@@ -186,8 +190,8 @@ class StreamSession:
         self.encoder = EstimateEncoder(
             self.settings,
             LocalTangentPlane(cfg.lat0_deg, cfg.lon0_deg, cfg.alt0_m),
-            cfg.filter.gate_probability,
-            cfg.filter.gps_gap_reset_s,
+            self.estimator.gate_probability,
+            self.estimator.gps_gap_s,
             self.estimator.method,
         )
         early, self._early = self._early, []

@@ -189,7 +189,7 @@ def _quat_from_dcm(r: np.ndarray) -> np.ndarray:
 
 
 def test_setting_reaches_the_filter_and_keeps_its_covariance_positive():
-    """``filter.body_velocity_error`` from a scenario override reaches the filter a run
+    """``vehicle.body_velocity_error`` from a scenario override reaches the filter a run
     builds; a 3 s hand-over and turn on it keeps P positive definite (the pipeline's
     checks) and reads the same first GPS fix."""
     from filters.pipeline import run_filter
@@ -201,10 +201,10 @@ def test_setting_reaches_the_filter_and_keeps_its_covariance_positive():
         [
             "run.rate_hz=200",
             "flight.legs=[{ duration_s = 3.0, ramp_s = 1.0, bank_deg = 30.0 }]",
-            "filter.body_velocity_error=true",
+            "vehicle.body_velocity_error=true",
         ],
     )
-    assert scn.filter.body_velocity_error is True
+    assert scn.vehicle.body_velocity_error is True
     sim = simulate_flight(scn, 0)
     res = run_filter(sim.samples, sim.fixes, sim.config)
     cov = res.estimates.cov_nav

@@ -68,3 +68,21 @@ def test_bench_filter_command():
     assert ratio > 1.0  # the pipeline does more than filterpy's bare predict/update
     proc = run("bench-filter", "--scenario", "static", "--seconds", "5", check=False)
     assert proc.returncode == 2 and "hold no filter block" in proc.stderr
+
+
+def test_a_free_body_runs_without_a_vehicle_model(tmp_path):
+    """``vehicle.kind = "free"`` (the default of a run that declares nothing): tactical's
+    manoeuvres flown by a body with no motion constraint go through ``ngnav run`` with no
+    vehicle-model update, and the GPS-held errors stay small."""
+    free = ["vehicle.kind=free", "vehicle.lift_k_m=0", "vehicle.lift_k_sigma_m=0",
+            "vehicle.body_velocity_error=false"]
+    sets = [a for f in free for a in ("--set", f)]
+    run("simulate", "--scenario", "tactical", *sets, "--out", str(tmp_path / "run"))
+    assert 'kind = "free"' in (tmp_path / "run" / "config.toml").read_text()
+    out = run("run", str(tmp_path / "run")).stdout
+    assert "  sideslip updates: 0" in out and "  angle-of-attack updates: 0" in out
+    line = next(ln for ln in out.splitlines() if "against truth.csv" in ln)
+    horiz = float(line.split("horizontal RMS ")[1].split(" m")[0])
+    roll, pitch, _ = (float(x) for x in line.split("RMS ")[-1].split(" deg")[0].split("/"))
+    # 10 Hz fixes of 1.5 m (per axis) and the array's tilt from GPS-held velocity
+    assert horiz < 1.0 and roll < 2.0 and pitch < 2.0

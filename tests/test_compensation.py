@@ -95,7 +95,7 @@ def _channel_config(corrected: bool):
         turn_on_bias_mps2=np.full(9, 0.0098),
         bias_rw_mps2_rts=np.full(9, 1e-5),
         position_sigma_m=0.0,
-        filter=SimpleNamespace(forecast_correction=corrected),
+        compensation=SimpleNamespace(forecast_correction=corrected),
     )
 
 
@@ -107,7 +107,7 @@ def _loop_errors(
     The sensors read ``(I + E) phi + n`` (white ``n`` of 1-sigma ``sigma``); the
     compensation subtracts ``E`` times the forecast made from the compensated means.
     ``corrected`` also takes ``E`` of the block's forecast error out (the pipeline's
-    ``filter.forecast_correction``).
+    ``compensation.forecast_correction``).
     """
     phi = np.array([0.3, -0.2, 0.1, 0.5, -0.4, 9.0])
     window = 5
@@ -161,7 +161,7 @@ def test_one_blocks_own_noise_is_raw_unless_the_forecast_is_corrected(corrected)
 
     The loop's ``A = (I + E)^-1`` holds for errors integrated over many blocks (the
     test above); one block's own error is the raw noise plus ``E`` of the forecast's,
-    about raw. The forecast's correction (``filter.forecast_correction``) takes ``E``
+    about raw. The forecast's correction (``compensation.forecast_correction``) takes ``E``
     of the block's forecast error out, its own noise included: ``(I - E) n``, about
     ``A n``. 30000 blocks, per-channel variance against both models (``E`` 0.07 on
     the diagonal, as ``uav-survey``'s 6 mm offset: the models 13 % apart).

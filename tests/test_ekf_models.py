@@ -947,83 +947,51 @@ def test_count_by_prior_weight_update(axis, prior_scale):
         assert r_on == pytest.approx(r_off, rel=1e-2)
 
 
-@pytest.mark.parametrize("setting", ["count_by_prior_weight"])
-def test_vehicle_model_switch_is_a_setting_that_reaches_the_filter(setting):
-    """``filter.count_by_prior_weight`` (off by default) reaches the filter a run builds,
-    from a scenario override as ``--set`` gives it: on a 3 s turn the covariance differs,
-    and the nominal state the first update meets is the same."""
+#: A free vehicle on tactical's flight: the fixed-wing's airframe keys cleared with the kind.
+FREE_VEHICLE = [
+    "vehicle.kind=free",
+    "vehicle.lift_k_m=0",
+    "vehicle.lift_k_sigma_m=0",
+    "vehicle.body_velocity_error=false",
+]
+
+
+def test_vehicle_kind_decides_the_models_and_a_fixed_wing_updates_at_5_hz():
+    """``vehicle.kind``: a free vehicle gets no vehicle-model update and no angle-of-attack
+    state; a fixed-wing gets the sideslip and angle-of-attack updates at 5 Hz, both axes
+    at every update time, through the hand-over's hold and after it."""
     from filters.pipeline import run_filter
     from ngnav.flight_scenario import load_flight
-    from ngnav.runconfig import FilterSettings
+    from ngnav.settings import VehicleSettings
     from ngnav.simulate import simulate_flight
 
-    assert getattr(FilterSettings(), setting) is False
-    ends = {}
-    for value in ("false", "true"):
-        scn = load_flight(
-            "tactical",
-            [
-                "run.rate_hz=200",
-                "flight.legs=[{ duration_s = 3.0, ramp_s = 1.0, bank_deg = 30.0 }]",
-                # the hand-over's count equal to the flight's: no hold, so the whole
-                # 3 s counts as GPS-held flight
-                "filter.coast_remainder_updates=4",
-                f"filter.{setting}={value}",
-            ],
-        )
-        assert getattr(scn.filter, setting) is (value == "true")
-        sim = simulate_flight(scn, 0)
-        ends[value] = run_filter(sim.samples, sim.fixes, sim.config).estimates
-    off, on = ends["false"], ends["true"]
-    np.testing.assert_array_equal(off.pos_ned_m[0], on.pos_ned_m[0])
-    assert not np.allclose(off.cov_nav[-1], on.cov_nav[-1], rtol=1e-6, atol=0.0)
+    assert VehicleSettings().kind == "free"
+    with pytest.raises(ValueError, match=r"vehicle\.lift_k_m describes a fixed-wing"):
+        VehicleSettings(lift_k_m=2.0)
+    short = [
+        "run.rate_hz=200",
+        "flight.legs=[{ duration_s = 12.0, ramp_s = 1.0, bank_deg = 30.0 }]",
+    ]
+    scn = load_flight("tactical", short)
+    assert scn.vehicle.fixed_wing
+    sim = simulate_flight(scn, 0)
+    log: list = []
+    res = run_filter(sim.samples, sim.fixes, sim.config, body_velocity_log=log)
+    assert res.estimates.aoa_rad is not None
+    t = np.array([rec.t_s for rec in log])
+    axes = np.array([rec.axis for rec in log])
+    np.testing.assert_array_equal(t[axes == LATERAL], t[axes == VERTICAL])
+    gaps = np.diff(t[axes == LATERAL])
+    assert gaps.size >= 50
+    np.testing.assert_allclose(gaps, 0.2, atol=0.006)
 
-
-def test_vehicle_model_rate_holds_5_hz_over_the_hand_over_and_its_own_rate_after():
-    """``filter.vehicle_model_rate_hz``: the sideslip and angle-of-attack updates run
-    at 5 Hz while the filter counts the remainder as a coast's (``tactical``'s hand-over
-    hold: ``coast_remainder_updates`` over 5 Hz) and at the set rate
-    after it, each axis once per update time; the default (5 Hz) keeps them at 5 Hz."""
-    from filters.pipeline import run_filter
-    from ngnav.flight_scenario import load_flight
-    from ngnav.runconfig import FilterSettings
-    from ngnav.simulate import simulate_flight
-
-    assert FilterSettings().vehicle_model_rate_hz == 5.0
-    with pytest.raises(ValueError, match="vehicle_model_rate_hz"):
-        FilterSettings(vehicle_model_rate_hz=0.0)
-    times = {}
-    for rate in ("5", "1"):
-        scn = load_flight(
-            "tactical",
-            [
-                "run.rate_hz=200",
-                "flight.legs=[{ duration_s = 12.0, ramp_s = 1.0, bank_deg = 30.0 }]",
-                f"filter.vehicle_model_rate_hz={rate}",
-            ],
-        )
-        assert scn.filter.vehicle_model_rate_hz == float(rate)
-        sim = simulate_flight(scn, 0)
-        log: list = []
-        run_filter(sim.samples, sim.fixes, sim.config, body_velocity_log=log)
-        t = np.array([rec.t_s for rec in log])
-        axes = np.array([rec.axis for rec in log])
-        # both axes at every update time
-        np.testing.assert_array_equal(t[axes == LATERAL], t[axes == VERTICAL])
-        times[rate] = t[axes == LATERAL]
-    hold_s = scn.filter.coast_remainder_updates / 5.0
-    for rate, t in times.items():
-        gaps = np.diff(t)
-        in_hold = t[1:] <= t[0] + hold_s
-        np.testing.assert_allclose(gaps[in_hold], 0.2, atol=0.006)
-        want = 0.2 if rate == "5" else 1.0
-        after = t[:-1] >= t[0] + hold_s
-        assert after.sum() >= 3
-        np.testing.assert_allclose(gaps[after], want, atol=0.006)
-    np.testing.assert_array_equal(
-        times["5"][times["5"] <= times["5"][0] + hold_s - 0.1],
-        times["1"][times["1"] <= times["1"][0] + hold_s - 0.1],
-    )
+    free = load_flight("tactical", short + FREE_VEHICLE)
+    assert not free.vehicle.fixed_wing
+    sim = simulate_flight(free, 0)
+    log = []
+    res = run_filter(sim.samples, sim.fixes, sim.config, body_velocity_log=log)
+    assert log == [] and res.estimates.aoa_rad is None
+    assert res.counts["sideslip updates"] == 0 and res.counts["angle-of-attack updates"] == 0
 
 
 def _static_alignment_nees(

@@ -60,14 +60,21 @@ def test_config_round_trip(tmp_path, tactical):
 
 def test_config_format_documents_every_setting():
     """The ``config.toml`` format in ``ngnav.runconfig``'s docstring (which the README
-    points to for the full list) names every ``[initial]`` and ``[filter]`` key."""
+    points to for the full list) names every key of its settings sections."""
     import dataclasses
     import re
 
     import ngnav.runconfig as rc
 
     doc = rc.__doc__
-    for section, cls in (("initial", rc.InitialSettings), ("filter", rc.FilterSettings)):
+    sections = (
+        ("initial", rc.InitialSettings),
+        ("filter", rc.FilterSettings),
+        ("compensation", rc.CompensationSettings),
+        ("vehicle", rc.VehicleSettings),
+        ("rest", rc.RestSettings),
+    )
+    for section, cls in sections:
         block = doc[doc.index(f"[{section}]") :]
         block = block[: re.search(r"\n    \[(?!" + section + r"\])", block + "\n    [").start()]
         missing = [
@@ -492,12 +499,16 @@ def test_fixes_that_keep_failing_the_gate_after_an_outage_reset_on_the_third(tac
     assert res.counts["gps resets after rejections"] == 0
 
 
-def test_a_long_gap_of_held_samples_widens_the_covariance(tactical):
+def test_a_long_gap_of_held_samples_widens_the_covariance(tactical, monkeypatch):
     """0.5 s of lost array samples in a 2 g turn: the forecast stands in, and the
-    covariance grows with its error (filter.hold_*), so the attitude stays consistent."""
+    covariance grows with its error (``filters.pipeline.HOLD_*``), so the attitude stays
+    consistent."""
     from dataclasses import replace
 
     from scipy.stats import chi2
+
+    import filters.pipeline
+    from ngnav.settings import VehicleSettings
 
     sim = tactical
     acc = sim.samples.accel_mps2.copy()
@@ -523,26 +534,20 @@ def test_a_long_gap_of_held_samples_widens_the_covariance(tactical):
     # the same gap without the hold model: the filter turns grossly overconfident
     # (measured: worst attitude NEES 12 899 and 11 GPS velocities rejected; 9.8 and
     # one with it)
-    off = replace(sim.config.filter, hold_wdot_sigma_rps2=0.0, hold_force_sigma_mps2=0.0)
-    worst_off, res_off = worst_att_nees(replace(sim.config, filter=off))
+    free = replace(sim.config, vehicle=VehicleSettings())
+    worst_nm, _ = worst_att_nees(free)
+    with monkeypatch.context() as mp:
+        mp.setattr(filters.pipeline, "HOLD_WDOT_SIGMA_RPS2", 0.0)
+        mp.setattr(filters.pipeline, "HOLD_FORCE_SIGMA_MPS2", 0.0)
+        worst_off, res_off = worst_att_nees(sim.config)
+        worst_none, res_none = worst_att_nees(free)
     assert worst_off > 100 * chi2.ppf(0.999, 3)
     assert res_off.counts["gps velocities rejected (gate)"] > 0
     # without the vehicle model (sideslip and angle of attack) the hold model alone keeps
     # the attitude consistent through the gap (measured worst 10.6); without both the
     # filter is grossly overconfident (measured: worst 2 133, 13 velocities rejected, one
     # tilt reopen; on the draws before 9e531ec it lost its tilt twice)
-    no_model = {
-        "sideslip_sigma_deg": 0.0,
-        "aoa_sigma_deg": 0.0,
-        "aoa_prior_sigma_deg": 0.0,
-        "aoa_rw_deg_rts": 0.0,
-        "aoa_lift_k_m": 0.0,
-        "aoa_lift_k_sigma_m": 0.0,
-        "liftoff_speed_mps": 0.0,
-    }
-    worst_nm, _ = worst_att_nees(replace(sim.config, filter=replace(sim.config.filter, **no_model)))
     assert worst_nm < chi2.ppf(0.999, 3)
-    worst_none, res_none = worst_att_nees(replace(sim.config, filter=replace(off, **no_model)))
     assert worst_none > 100 * chi2.ppf(0.999, 3)
     assert res_none.counts["gps velocities rejected (gate)"] > 0
 

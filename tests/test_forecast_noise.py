@@ -1,4 +1,4 @@
-"""The compensation's forecast error as filter noise (``filter.forecast_error_persistence``)."""
+"""The compensation's forecast error as filter noise (``forecast_error_persistence``)."""
 
 from dataclasses import replace
 
@@ -11,7 +11,7 @@ from filters.state import RATE, VEL
 from ngnav.flight_scenario import load_flight
 from ngnav.predictors import GreyPredictor, LastValuePredictor, LinePredictor, noise_gain
 from ngnav.rotation import dcm_from_quat, quat_from_rotvec
-from ngnav.runconfig import FilterSettings
+from ngnav.settings import CompensationSettings
 from ngnav.simulate import simulate_flight
 from tests.helpers import level_filter
 
@@ -142,8 +142,8 @@ def test_forecast_noise_grows_the_rate_covariance_in_a_roll_out_not_in_a_dive():
     sim = simulate_flight(scn, 0)
     rate_var = {}
     for persistence in (0.0, 2.0):
-        f = replace(sim.config.filter, forecast_error_persistence=persistence)
-        cfg = replace(sim.config, filter=f)
+        f = replace(sim.config.compensation, forecast_error_persistence=persistence)
+        cfg = replace(sim.config, compensation=f)
         seen = {}
 
         def grab(p: Pipeline, seen=seen) -> None:
@@ -163,9 +163,9 @@ def test_forecast_noise_grows_the_rate_covariance_in_a_roll_out_not_in_a_dive():
 
 def test_forecast_error_persistence_is_checked():
     with pytest.raises(ValueError, match="forecast_error_persistence must be"):
-        FilterSettings(forecast_error_persistence=-1.0)
+        CompensationSettings(forecast_error_persistence=-1.0)
     with pytest.raises(ValueError, match="forecast_error_persistence must be"):
-        FilterSettings(forecast_error_persistence=float("nan"))
+        CompensationSettings(forecast_error_persistence=float("nan"))
 
 
 @pytest.mark.parametrize("part", ["force", "angular acceleration"])
@@ -208,9 +208,9 @@ def test_remove_feature_residual_undoes_a_constant_feature_error(part):
 
 
 def test_forecast_correction_is_a_setting_that_reaches_the_state():
-    """``filter.forecast_correction`` (off by default) changes the estimates of a
+    """``compensation.forecast_correction`` (off by default) changes the estimates of a
     forecast-compensated run, and only when on."""
-    assert FilterSettings().forecast_correction is False
+    assert CompensationSettings().forecast_correction is False
     scn = load_flight(
         "tactical",
         ["run.rate_hz=200", "flight.legs=[{ duration_s = 3.0, ramp_s = 1.0, bank_deg = 30.0 }]"],
@@ -218,7 +218,8 @@ def test_forecast_correction_is_a_setting_that_reaches_the_state():
     sim = simulate_flight(scn, 0)
     ends = {}
     for on in (False, True):
-        cfg = replace(sim.config, filter=replace(sim.config.filter, forecast_correction=on))
+        comp = replace(sim.config.compensation, forecast_correction=on)
+        cfg = replace(sim.config, compensation=comp)
         pipe = Pipeline(cfg)
         _feed(pipe, sim.samples, sim.fixes, None)
         ends[on] = (pipe.nf.w.copy(), pipe.nf.vel.copy())

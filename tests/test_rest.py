@@ -216,7 +216,7 @@ STOP_AND_GO = (
 def test_zero_rate_updates_fall_only_where_the_vehicle_stands():
     """`static` driven off and stopped again: the updates run in both rests, never in
     motion, and the second rest is found from the data (GPS and array) alone."""
-    scn = load_flight("static", [STOP_AND_GO, "filter.rest_rate_sigma_dps=1e-4"])
+    scn = load_flight("static", [STOP_AND_GO, "rest.rate_sigma_dps=1e-4"])
     sim = simulate_flight(scn, 0)
     t = sim.samples.t_s
     pipe = Pipeline(sim.config, dt_s=float(np.median(np.diff(t))), truth=sim.truth)
@@ -254,7 +254,7 @@ def test_two_minutes_at_rest_keep_the_heading_and_tell_the_truth():
         "static",
         [
             "flight.legs=[{ duration_s = 55.0, ramp_s = 1.0, speed_mps = 0.0 }]",
-            "filter.rest_rate_sigma_dps=1e-4",
+            "rest.rate_sigma_dps=1e-4",
         ],
     )
     total = 0.0

@@ -85,25 +85,62 @@ def test_layer_check_sees_a_violation(tmp_path):
     assert _imported_packages(f) == {"filters"}
 
 
-def test_a_retired_setting_reads_at_its_fixed_value_and_is_refused_otherwise(tmp_path):
-    """Run directories written before a setting was retired still read."""
+#: A tactical run's ``[filter]`` as ngnav wrote it before the settings were grouped.
+LEGACY_FILTER = """[filter]
+rate_hz = 100.0
+compensation = "gm11"
+window = 5
+gate_probability = 0.9999
+rate_range_dps = 200.0
+sideslip_sigma_deg = 3e-06
+aoa_sigma_deg = 3e-06
+aoa_prior_deg = -1.5
+aoa_prior_sigma_deg = 1.0
+aoa_rw_deg_rts = 0.0
+aoa_lift_k_m = 18.0
+aoa_lift_k_sigma_m = 0.9
+liftoff_speed_mps = 0.0
+gps_gap_reset_s = 5.0
+fusion_lag_s = 0.1
+hold_wdot_sigma_rps2 = 2.0
+hold_force_sigma_mps2 = 3.0
+position_states = true
+remainder_updates = 4.0
+attitude_remainder_updates = 7.0
+coast_remainder_updates = 10.0
+coast_after_s = 1.0
+forecast_error_persistence = 1.0
+forecast_correction = true
+remainder_off_constraint = false
+vehicle_model_rate_hz = 5.0
+count_by_prior_weight = true
+body_velocity_error = true
+position_consider = false
+remainder_consider = false
+rest_rate_sigma_dps = 0.0
+"""
+
+
+def test_a_run_written_before_the_settings_were_grouped_still_reads(tmp_path):
+    """The old flat ``[filter]`` maps onto today's groups with the same meaning; a value
+    that is no longer settable must be the one now fixed, and is refused otherwise."""
     from ngnav.flight_scenario import load_flight
-    from ngnav.runconfig import (
-        FilterSettings,
-        read_run_config_text,
-        write_run_config,
-    )
+    from ngnav.runconfig import read_run_config_text, run_config_text
     from ngnav.simulate import simulate_flight
 
-    cfg = simulate_flight(load_flight("static"), 0).config
-    write_run_config(cfg, tmp_path / "config.toml")
-    text = (tmp_path / "config.toml").read_text()
-    assert "[filter]" in text
-    for key, fixed in FilterSettings.RETIRED.items():
-        value = str(fixed).lower()
-        old = text.replace("[filter]\n", f"[filter]\n{key} = {value}\n")
-        assert read_run_config_text(old, "old.toml").filter == cfg.filter
-        flipped = str(not fixed).lower()
-        bad = text.replace("[filter]\n", f"[filter]\n{key} = {flipped}\n")
-        with pytest.raises(ValueError, match=f"filter.{key} was retired; it is always"):
+    cfg = simulate_flight(load_flight("tactical"), 0).config
+    text = run_config_text(cfg)
+    old = text[: text.index("[filter]")] + LEGACY_FILTER
+    got = read_run_config_text(old, "old.toml")
+    for group in ("filter", "compensation", "vehicle", "rest"):
+        assert getattr(got, group) == getattr(cfg, group), group
+    free = old.replace("sideslip_sigma_deg = 3e-06", "sideslip_sigma_deg = 0.0")
+    with pytest.raises(ValueError, match=r"filter\.sideslip_sigma_deg is no longer a setting"):
+        read_run_config_text(free, "old.toml")
+    for key, value in (("gate_probability", "0.99"), ("remainder_consider", "true")):
+        bad = old.replace(f"{key} = ", f"{key} = {value}\n# ")
+        with pytest.raises(ValueError, match=rf"old.toml: filter\.{key} is no longer a setting"):
             read_run_config_text(bad, "old.toml")
+    both = old + "\n[compensation]\nmethod = \"none\"\n"
+    with pytest.raises(ValueError, match=r"filter\.compensation and compensation\.method both"):
+        read_run_config_text(both, "old.toml")
