@@ -285,3 +285,38 @@ def blend_spread_var(x0: float, sx: float) -> float:
     r = s - s0 - ds0 * sx * BLEND_Z
     mean = float(BLEND_W @ r)
     return max(float(BLEND_W @ (r * r)) - mean * mean, 0.0)
+
+
+#: Rate of the vehicle model's updates (sideslip and angle of attack, when configured)
+#: over the hand-over and coasts (``NavFilter.counts_as_coast``), where the coast's count
+#: is in updates at this rate; elsewhere too (the rate is fixed), Hz.
+SIDESLIP_RATE_HZ = 5.0
+
+
+def load_extrapolation_weights(k_now: int, k_prev: int) -> tuple[float, float]:
+    """Weights ``(w_now, w_prev)`` that take two consecutive block means to the block end.
+
+    A block of ``k_now`` samples ending at ``t_e`` (the filter's time) has its mean at
+    ``t_e - (k_now - 1) dt / 2``; the block before, of ``k_prev`` samples, at
+    ``t_e - k_now dt - (k_prev - 1) dt / 2``. The straight line through the two means,
+    evaluated at ``t_e``, is ``w_now f_k + w_prev f_k-1`` with ``w_now = 1 + L``,
+    ``w_prev = -L``, ``L = (k_now - 1) / (k_now + k_prev)``: 1.45 and -0.45 for
+    ``tactical``'s blocks of 10 samples (1.5 / -0.5, the limit of long blocks, reaches
+    half a sample past the block end: 0.5 ms, and at the level-off's load rate the
+    angle of attack ran up to 0.6 sigma off the truth, the same way in every run;
+    design notes, "the load's half-sample lead"). Exact for a load linear in time.
+
+    Parameters
+    ----------
+    k_now, k_prev : int
+        Samples in the current and the previous block (>= 1).
+
+    Returns
+    -------
+    tuple of float
+        ``(w_now, w_prev)``, summing to 1.
+    """
+    if k_now < 1 or k_prev < 1:
+        raise ValueError(f"block sizes must be >= 1, got {k_now} and {k_prev}")
+    lead = (k_now - 1) / (k_now + k_prev)
+    return 1.0 + lead, -lead

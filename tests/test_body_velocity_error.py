@@ -8,7 +8,7 @@ exact rotations and an exact integration of the body-frame dynamics.
 import numpy as np
 import pytest
 
-from filters.ekf import body_velocity_reset_jacobian
+from filters.algebra import body_velocity_reset_jacobian
 from filters.state import ATT, VEL
 from filters.vehicle_model import LATERAL, VERTICAL, constraint_axes
 from ngnav.conventions import gravity_n_mps2
@@ -217,7 +217,7 @@ def test_body_frame_only_while_the_attitude_is_known():
     the NED velocity by at most ``BODY_FRAME_MAX_CURVATURE_MPS`` (``|v| tr(P_att) / 2``),
     the NED error above it and whenever the setting is off; the curvature read-out is
     zero in the NED error."""
-    from filters.ekf import BODY_FRAME_MAX_CURVATURE_MPS
+    from filters.algebra import BODY_FRAME_MAX_CURVATURE_MPS
 
     nf, _, _ = level_filter()
     nf.vel = np.array([0.0, 60.0, 0.0])

@@ -167,7 +167,7 @@ def test_one_blocks_own_noise_is_raw_unless_the_forecast_is_corrected(corrected)
     the diagonal, as ``uav-survey``'s 6 mm offset: the models 13 % apart).
     """
 
-    from filters.pipeline import filter_noise
+    from filters.noise import filter_noise
 
     rng = np.random.default_rng(13)
     e6 = 0.07 * np.eye(6) + 0.01 * rng.standard_normal((6, 6))
@@ -202,7 +202,7 @@ def test_forecast_feedback_returns_the_bias_estimates_error():
     outside the loop) must fail, and ``filter_noise`` must give this ``A``.
     """
 
-    from filters.pipeline import filter_noise
+    from filters.noise import filter_noise
 
     rng = np.random.default_rng(12)
     e6 = 0.07 * np.eye(6) + 0.03 * rng.standard_normal((6, 6))
@@ -248,7 +248,7 @@ def test_forecast_feedback_returns_the_sensor_positions_through_the_loop():
     fail it.
     """
     from filters.ekf import FilterNoise, NavFilter
-    from filters.pipeline import filter_noise
+    from filters.noise import filter_noise
     from tests.helpers import PAIRS
 
     rng = np.random.default_rng(21)

@@ -7,8 +7,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import chi2
 
-from filters.ekf import FilterNoise, NavFilter, static_mean_walk_s
-from filters.pipeline import load_extrapolation_weights
+from filters.ekf import FilterNoise, NavFilter
+from filters.noise import static_mean_walk_s
 from filters.state import ATT, B_F, RATE, VEL
 from filters.vehicle_model import (
     ATTITUDE_REMAINDER_UPDATES,
@@ -17,6 +17,7 @@ from filters.vehicle_model import (
     SIDESLIP_REMAINDER_UPDATES,
     VERTICAL,
     constraint_axes,
+    load_extrapolation_weights,
     prior_weighted_count,
     remainder_moments,
     remainder_variance,

@@ -482,7 +482,7 @@ def test_fixes_that_keep_failing_the_gate_after_an_outage_reset_on_the_third(tac
     fixes after it are fused normally."""
     from dataclasses import replace
 
-    from filters.ekf import GAP_RESET_AFTER_REJECTS
+    from filters.supervision import GAP_RESET_AFTER_REJECTS
 
     fixes, cfg = tactical.fixes, tactical.config
     out = fixes.select((fixes.t_s < 30.0) | (fixes.t_s >= 40.0))
@@ -501,13 +501,13 @@ def test_fixes_that_keep_failing_the_gate_after_an_outage_reset_on_the_third(tac
 
 def test_a_long_gap_of_held_samples_widens_the_covariance(tactical, monkeypatch):
     """0.5 s of lost array samples in a 2 g turn: the forecast stands in, and the
-    covariance grows with its error (``filters.pipeline.HOLD_*``), so the attitude stays
+    covariance grows with its error (``filters.forecast.HOLD_*``), so the attitude stays
     consistent."""
     from dataclasses import replace
 
     from scipy.stats import chi2
 
-    import filters.pipeline
+    import filters.step
     from ngnav.settings import VehicleSettings
 
     sim = tactical
@@ -537,8 +537,8 @@ def test_a_long_gap_of_held_samples_widens_the_covariance(tactical, monkeypatch)
     free = replace(sim.config, vehicle=VehicleSettings())
     worst_nm, _ = worst_att_nees(free)
     with monkeypatch.context() as mp:
-        mp.setattr(filters.pipeline, "HOLD_WDOT_SIGMA_RPS2", 0.0)
-        mp.setattr(filters.pipeline, "HOLD_FORCE_SIGMA_MPS2", 0.0)
+        mp.setattr(filters.step, "HOLD_WDOT_SIGMA_RPS2", 0.0)
+        mp.setattr(filters.step, "HOLD_FORCE_SIGMA_MPS2", 0.0)
         worst_off, res_off = worst_att_nees(sim.config)
         worst_none, res_none = worst_att_nees(free)
     assert worst_off > 100 * chi2.ppf(0.999, 3)

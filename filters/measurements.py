@@ -1,0 +1,274 @@
+"""The array's and the GPS's measurement models: each gives (z, H, R) for filterpy's update."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from filters.state import ATT, POS, RATE, VEL
+from filters.supervision import GAP_RESET_AFTER_REJECTS
+from filters.updates import quadratic_form
+from ngnav.records import GpsUpdateResult
+from ngnav.rotation import (
+    dcm_from_quat,
+    skew,
+)
+
+
+class MeasurementsMixin:
+    """Rate products, zero rate at rest, static biases, GPS position and velocity."""
+
+    def rate_model(
+        self,
+        w_block: np.ndarray,
+        sg: np.ndarray | None = None,
+        rate_var: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Block-mean quadratic terms (nq,) of the rates (K, 3) and their Jacobian (nq, n).
+
+        The rate error is the same at every sample of a block, so the Jacobian
+        is the block mean of ``d(w_i w_j)/dw``; the bias block is the identity,
+        the ``DR`` block the quadratic rows of ``sg``.
+
+        ``rate_var`` (3,), the variances of the rate estimate, shrinks each
+        rate in the Jacobian to ``sign(w) sqrt(max(0, w^2 - var))``, the
+        unbiased estimate of its size. A product ``w_i w_j`` tells about
+        ``w_j`` only as much as the *true* ``w_i`` is large; near zero rate an
+        estimate ``w_i`` made of its own error would claim information that
+        the measurement does not hold (a straight flight's yaw rate would
+        look measured and the heading would turn overconfident).
+
+        With ``quad_feedback`` the rate columns also carry the forecast
+        compensation's return of the rate error, ``E_q J6(w)``.
+        """
+        i, j = self.quad_pairs[:, 0], self.quad_pairs[:, 1]
+        inv_k = 1.0 / w_block.shape[0]
+        pred = (w_block.T @ w_block)[i, j] * inv_k
+        w_mean = w_block.sum(axis=0) * inv_k
+        if rate_var is not None:
+            w_mean = np.array(
+                [
+                    math.copysign(math.sqrt(max(wm * wm - v, 0.0)), wm) if wm else 0.0
+                    for wm, v in zip(w_mean.tolist(), np.asarray(rate_var).tolist(), strict=True)
+                ]
+            )
+        h = self._h_rate_base.copy()
+        h[:, RATE] = self._quad_d @ w_mean
+        if self.layout.n_dr:
+            h[:, self.layout.dr] = sg[6:]
+        return pred, h
+
+    def update_rate(
+        self,
+        quad_mean: np.ndarray,
+        w_block: np.ndarray,
+        k: int,
+        sg: np.ndarray | None = None,
+        held: np.ndarray | None = None,
+    ) -> float | None:
+        """Update with a block's mean solved rate-quadratic terms (nq,); returns the NIS.
+
+        ``sg`` is the block's :meth:`geometry_jacobian` (with ``DR`` states). Right
+        after :meth:`propagate` over the same block, the measurement's noise is
+        correlated with that block's propagation noise (:meth:`rate_noise_cross`;
+        ``held`` (K,) marks its held samples) and the update carries it.
+        """
+        nq = self.layout.nq
+        block, self._block = self._block, None
+        if nq == 0 or not self.rate_measurement:
+            return None
+        prr = self.P[RATE, RATE]
+        pred, h = self.rate_model(w_block, sg, np.diagonal(prr))
+        i, j = self.quad_pairs[:, 0], self.quad_pairs[:, 1]
+        pij = prr[i, j]
+        pred = pred + pij + self.bias[6:]
+        # second order: the spread of d_i d_j about its mean P_ij
+        r = self._sqq * (1.0 / k)
+        r.flat[:: nq + 1] += prr[i, i] * prr[j, j] + pij * pij
+        if self.layout.n_dr:
+            pred = pred + sg[6:] @ self.dr
+        y = quad_mean - pred
+        self.last_rate_innovation = y
+        m = None if block is None else self.rate_noise_cross(*block, held)
+        s = h @ self.P @ h.T + r
+        if m is not None:
+            hm = h @ m
+            s += hm + hm.T
+        nis = quadratic_form(y, s)
+        if nis > self.gate_q:
+            self.counters.rate_rejected += 1
+            return nis
+        self.x, self.P = self._update(y, r, h, m)
+        self._inject()
+        self.counters.rate_updates += 1
+        return nis
+
+    def rate_at_rest_model(self) -> np.ndarray:
+        """The zero-rate update's Jacobian (3, n): it reads the body rate states."""
+        h = np.zeros((3, self.layout.n))
+        h[:, RATE] = np.eye(3)
+        return h
+
+    def update_zero_rate(self, sigma_rps: float) -> tuple[float, bool]:
+        """Zero-rate update at detected rest: the body rate (FRD, rad/s) is measured as zero.
+
+        A vehicle standing still does not turn in the filter's NED frame (which leaves the
+        Earth's rotation out), so ``omega_b = 0`` with 1-sigma ``sigma_rps`` per axis:
+        its rocking on its mounts, or a numerical floor where the rest is exact. It is
+        what holds the yaw rate at rest, where a gyro-free array has nothing else: the
+        rate products vanish with the rates, and without a horizontal acceleration GPS
+        does not see the heading. It also makes the angular-acceleration biases
+        observable (the rate stays zero while their error would integrate into it).
+        Gated on the 3-dof chi-square threshold (a rejection says the vehicle turns:
+        :class:`filters.rest.RestDetector` ends the rest).
+
+        Returns ``(nis, accepted)``.
+        """
+        if not (np.isfinite(sigma_rps) and sigma_rps > 0.0):
+            raise ValueError(f"sigma_rps must be finite and > 0, got {sigma_rps}")
+        nis, ok = self._gated_update(
+            -self.w, np.eye(3) * (sigma_rps * sigma_rps), self.rate_at_rest_model()
+        )
+        self.counters.zero_rate_used += int(ok)
+        self.counters.zero_rate_rejected += int(not ok)
+        return nis, ok
+
+    def update_static_biases(
+        self,
+        mean_features: np.ndarray,
+        n_samples: int,
+        effect: np.ndarray | None = None,
+        sample_cov: np.ndarray | None = None,
+        walk_s: float = 0.0,
+    ) -> None:
+        """Static alignment: at rest ``wdot = 0`` and ``w = 0``, so the mean solved
+        angular acceleration and rate products over ``n_samples`` samples measure
+        their biases directly (noise ``feature_cov / n``). Through the channel-bias
+        correlation this also informs the force bias. Without it a gyro-free
+        array leaves the static alignment with its yaw-acceleration bias at the
+        turn-on prior, and a single-axis yaw rate is invisible to the products.
+
+        ``effect`` (k, k), optional, is what the bias states leave in
+        ``mean_features`` (the identity by default; the pipeline's static mean has the
+        mounting term at rest taken out with the biased force, which leaves
+        ``M = I - E_f (I + E_ff)^-1`` of the force bias in the other features).
+
+        ``sample_cov`` (k, k), optional, is the per-sample covariance of the raw solved
+        features the mean was taken of (default: ``noise.feature_cov``). The static
+        mean has no forecast loop, so its noise is the raw solve's, through ``effect``
+        as the biases are: ``M cov M^T / n``. ``noise.feature_cov`` is the
+        propagation's, mapped through the loop (``T``), about 13 % smaller in variance
+        on the angular acceleration with ``uav-survey``'s 6 mm outward offset.
+
+        ``walk_s`` (s, >= 0, default 0) weights the biases' random walk: the states
+        are the biases at the mean's last sample, which differ from their mean over
+        the span by a walk of covariance ``noise.bias_rw_cov * walk_s``, read through
+        ``effect`` as the noise is (:func:`static_mean_walk_s`: about a third of the
+        span; 13 % of the white noise's variance over ``uav-survey``'s 5 s).
+        """
+        if not (np.isfinite(walk_s) and walk_s >= 0.0):
+            raise ValueError(f"walk_s must be finite and >= 0, got {walk_s}")
+        nq = self.layout.nq
+        k = 6 + nq
+        idx = np.r_[0:3, 6 : 6 + nq]
+        m = np.eye(k) if effect is None else np.asarray(effect, dtype=float)
+        if m.shape != (k, k):
+            raise ValueError(f"effect must be ({k}, {k}), got {m.shape}")
+        h = np.zeros((idx.size, self.layout.n))
+        h[:, self.layout.bias] = m[idx]
+        if sample_cov is None:
+            r = self.noise.feature_cov[np.ix_(idx, idx)] / max(int(n_samples), 1)
+        else:
+            mi = m[idx]
+            r = mi @ np.asarray(sample_cov, dtype=float) @ mi.T / max(int(n_samples), 1)
+        if walk_s > 0.0:
+            r = r + m[idx] @ self.noise.bias_rw_cov @ m[idx].T * walk_s
+        y = mean_features[idx] - m[idx] @ self.bias
+        self.x, self.P = self._update(y, r, h)
+        self._inject()
+
+    def gps_model(
+        self, q_nb: np.ndarray, omega_b_rps: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Antenna offset (NED) and velocity (NED, from rotation) and their Jacobians.
+
+        Returns ``C r``, ``C (w x r)``, ``H_pos`` (3, n), ``H_vel`` (3, n).
+        """
+        c = dcm_from_quat(q_nb)
+        r = self.antenna_b_m
+        cr = c @ r
+        wx, wy, wz = np.asarray(omega_b_rps, dtype=float).tolist()
+        rx, ry, rz = r.tolist()
+        cwr = c @ np.array([wy * rz - wz * ry, wz * rx - wx * rz, wx * ry - wy * rx])
+        n = self.layout.n
+        hp = np.zeros((3, n))
+        hp[:, POS] = self._eye3
+        hp[:, ATT] = -skew(cr)
+        hv = np.zeros((3, n))
+        hv[:, VEL] = self._eye3
+        hv[:, ATT] = -skew(cwr)
+        hv[:, RATE] = -c @ skew(r)
+        return cr, cwr, hp, hv
+
+    def update_gps(
+        self,
+        pos_ned_m: np.ndarray,
+        vel_ned_mps: np.ndarray,
+        pos_sigma_m: np.ndarray,
+        vel_sigma_mps: float,
+        dt_fix_s: float = 0.0,
+        reset: bool = False,
+    ) -> GpsUpdateResult:
+        """Gate and apply one GPS fix (antenna position and velocity, NED).
+
+        ``dt_fix_s`` is the fix time minus the filter time (|dt| below one
+        array sample); the prediction is moved by ``v dt``. With ``reset``
+        (the first fix after an outage) a fix that passes the position gate
+        is not fused: :meth:`reset_to_fix` puts position and velocity on it; so
+        does the :data:`GAP_RESET_AFTER_REJECTS`-th fix in a row that fails it.
+        """
+        t_fix = self.t_s + dt_fix_s
+        if np.isfinite(self._t_prev_fix) and t_fix > self._t_prev_fix:
+            self.fix_interval_s = t_fix - self._t_prev_fix
+        self._t_prev_fix = t_fix
+        cr, _, hp, _ = self.gps_model(self.q, self.w)
+        rp = np.diag(np.broadcast_to(np.asarray(pos_sigma_m, dtype=float), 3) ** 2)
+        yp = pos_ned_m - (self.pos + cr + self.vel * dt_fix_s)
+        sp = hp @ self.P @ hp.T + rp
+        nis_h = quadratic_form(yp[0:2], sp[0:2, 0:2])
+        nis_vt = float(yp[2] ** 2 / sp[2, 2]) if sp[2, 2] > 0 else float("inf")
+        if reset:
+            nis_p = quadratic_form(yp, sp)
+            passed = np.isfinite(nis_p) and nis_p <= self.gate3
+            if passed or self._consec_rejects + 1 >= GAP_RESET_AFTER_REJECTS:
+                _, cwr, _, hv = self.gps_model(self.q, self.w)
+                yv = vel_ned_mps - (self.vel + cwr)
+                nis_v = quadratic_form(yv, hv @ self.P @ hv.T + np.eye(3) * vel_sigma_mps**2)
+                self._put_on_fix(
+                    pos_ned_m - self.vel * dt_fix_s, vel_ned_mps, pos_sigma_m, vel_sigma_mps
+                )
+                self.counters.gps_gap_resets += 1
+                self.counters.gps_used += 1
+                return GpsUpdateResult(nis_p, nis_v, True, True, nis_h, nis_vt)
+            self.counters.gps_rejected_pos += 1
+            self.counters.gps_rejected_vel += 1
+            self._consec_rejects += 1
+            return GpsUpdateResult(nis_p, float("nan"), False, False, nis_h, nis_vt)
+        nis_p, ok_p = self._gated_update(yp, rp, hp)
+        _, cwr, _, hv = self.gps_model(self.q, self.w)  # after the position update
+        rv = self._eye3 * float(vel_sigma_mps) ** 2
+        yv = vel_ned_mps - (self.vel + cwr)
+        if self.in_body_frame():
+            mc, cc = self.velocity_curvature()
+            yv = yv - mc
+            rv = rv + cc
+        nis_v, ok_v = self._gated_update(yv, rv, hv)
+        self.counters.gps_used += int(ok_p or ok_v)
+        self.counters.gps_rejected_pos += int(not ok_p)
+        self.counters.gps_rejected_vel += int(not ok_v)
+        self._consec_rejects = 0 if ok_p else self._consec_rejects + 1
+        self._consec_vel_rejects = 0 if ok_v else self._consec_vel_rejects + 1
+        if ok_p:
+            self.t_last_position_fix = self.t_s
+        return GpsUpdateResult(nis_p, nis_v, ok_p, ok_v, nis_h, nis_vt)
