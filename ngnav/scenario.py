@@ -149,6 +149,12 @@ def _build(cls: type, table: Any, section: str, source: str) -> Any:
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(table) - set(fields))
     if unknown:
+        if section == "filter":
+            from ngnav.settings import retired_key_message
+
+            msg = retired_key_message(unknown[0])
+            if msg:
+                raise ValueError(f"{source}: {msg}")
         known = (f"{section}.{k}" for k in fields)
         raise ValueError(f"{source}: {unknown_name('key', f'{section}.{unknown[0]}', known)}")
     kwargs = {}

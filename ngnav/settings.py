@@ -220,6 +220,21 @@ FREE: dict[str, Any] = {
 }
 
 
+def retired_key_message(key: str) -> str | None:
+    """What became of an old ``[filter]`` key (moved or fixed), or None for any other."""
+    if key in MOVED:
+        section, new = MOVED[key]
+        return f"filter.{key} is now {section}.{new}"
+    if key in FIXED:
+        return f"filter.{key} is no longer a setting; it is {FIXED[key]!r}"
+    if key in FIXED_WING:
+        return (
+            f"filter.{key} is no longer a setting: vehicle.kind = \"fixed-wing\" has "
+            f"{FIXED_WING[key]!r}, a free vehicle none"
+        )
+    return None
+
+
 def migrate_legacy(data: dict, source: str) -> dict:
     """A parsed config whose flat ``[filter]`` predates the groups, in today's sections.
 

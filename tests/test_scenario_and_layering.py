@@ -144,3 +144,18 @@ def test_a_run_written_before_the_settings_were_grouped_still_reads(tmp_path):
     both = old + "\n[compensation]\nmethod = \"none\"\n"
     with pytest.raises(ValueError, match=r"filter\.compensation and compensation\.method both"):
         read_run_config_text(both, "old.toml")
+
+
+@pytest.mark.parametrize(
+    ("override", "says"),
+    [
+        ("filter.gps_gap_reset_s=3", "filter.gps_gap_reset_s is no longer a setting; it is 5.0"),
+        ("filter.compensation=none", "filter.compensation is now compensation.method"),
+        ("filter.sideslip_sigma_deg=0", 'vehicle.kind = "fixed-wing" has 3e-06'),
+    ],
+)
+def test_an_override_of_an_old_key_says_what_became_of_it(override, says):
+    from ngnav.flight_scenario import load_flight
+
+    with pytest.raises(ValueError, match=re.escape(says)):
+        load_flight("tactical", [override])
