@@ -44,8 +44,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ngnav.conventions import G0_MPS2, gravity_n_mps2
-from ngnav.motion import RigidBodyTruth, min_jerk_step
-from ngnav.records import check_time_axis, freeze_fields
+from ngnav.motion import min_jerk_step
+from ngnav.records import FlightTruth
 from ngnav.rotation import dcm_from_quat, quat_multiply
 
 
@@ -312,57 +312,6 @@ class FlightPlan:
         coord = G0_MPS2 * tan / vs
         dcoord = np.where(v > 0.25 * vt, G0_MPS2 * (sec2 * dphi * vs - tan * dv) / vs**2, 0.0)
         return blend * coord + r, dblend * coord + blend * dcoord + dr
-
-
-@dataclass(frozen=True)
-class FlightTruth:
-    """Exact truth of a flight at the array's sample times.
-
-    Attributes
-    ----------
-    t_s : array (T,)
-        Times, s.
-    pos_ned_m : array (T, 3)
-        Position of the body origin in the tangent plane, NED, m.
-    vel_ned_mps : array (T, 3)
-        Velocity of the body origin, NED, m/s.
-    q_nb : array (T, 4)
-        Attitude, body (FRD) to NED, Hamilton scalar first.
-    omega_b_rps, omega_dot_b_rps2 : array (T, 3)
-        Body rate (rad/s) and its derivative (rad/s^2), body frame.
-    f_b_mps2 : array (T, 3)
-        Specific force at the body origin, body frame, m/s^2.
-    """
-
-    t_s: np.ndarray
-    pos_ned_m: np.ndarray
-    vel_ned_mps: np.ndarray
-    q_nb: np.ndarray
-    omega_b_rps: np.ndarray
-    omega_dot_b_rps2: np.ndarray
-    f_b_mps2: np.ndarray
-
-    def __post_init__(self) -> None:
-        freeze_fields(
-            self,
-            {
-                "t_s": (),
-                "pos_ned_m": (3,),
-                "vel_ned_mps": (3,),
-                "q_nb": (4,),
-                "omega_b_rps": (3,),
-                "omega_dot_b_rps2": (3,),
-                "f_b_mps2": (3,),
-            },
-        )
-        check_time_axis(self.t_s)
-
-    @property
-    def body(self) -> RigidBodyTruth:
-        """The rotational part as a :class:`~ngnav.motion.RigidBodyTruth`."""
-        return RigidBodyTruth(
-            self.t_s, self.q_nb, self.omega_b_rps, self.omega_dot_b_rps2, self.f_b_mps2
-        )
 
 
 def quat_from_euler(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:

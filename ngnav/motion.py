@@ -7,55 +7,11 @@ rate profile, never a finite difference of sampled attitude.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from ngnav.conventions import gravity_n_mps2
-from ngnav.records import check_time_axis, freeze_fields
+from ngnav.records import FlightTruth
 from ngnav.rotation import dcm_from_quat, quat_from_axis_angle, quat_multiply, quat_normalize
-
-
-@dataclass(frozen=True)
-class RigidBodyTruth:
-    """Exact kinematics of the body at the sample times.
-
-    Attributes
-    ----------
-    t_s : array (T,)
-        Times, s.
-    q_nb : array (T, 4)
-        Attitude, body to NED, Hamilton scalar first.
-    omega_b_rps : array (T, 3)
-        Body rate, rad/s.
-    omega_dot_b_rps2 : array (T, 3)
-        Body angular acceleration, rad/s^2.
-    f_b_mps2 : array (T, 3)
-        Specific force at the body origin, body frame, m/s^2.
-    """
-
-    t_s: np.ndarray
-    q_nb: np.ndarray
-    omega_b_rps: np.ndarray
-    omega_dot_b_rps2: np.ndarray
-    f_b_mps2: np.ndarray
-
-    def __post_init__(self) -> None:
-        freeze_fields(
-            self,
-            {
-                "t_s": (),
-                "q_nb": (4,),
-                "omega_b_rps": (3,),
-                "omega_dot_b_rps2": (3,),
-                "f_b_mps2": (3,),
-            },
-        )
-        check_time_axis(self.t_s)
-
-    def loop_state(self) -> np.ndarray:
-        """True values (T, 9) of the compensation loop's channels (rate, rate dot, force)."""
-        return np.hstack([self.omega_b_rps, self.omega_dot_b_rps2, self.f_b_mps2])
 
 
 def min_jerk_step(tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -89,7 +45,7 @@ def fixed_axis_turn(
     axis_b: np.ndarray,
     pivot_b_m: np.ndarray,
     q0_nb: np.ndarray | None = None,
-) -> RigidBodyTruth:
+) -> FlightTruth:
     """A turn by ``angle_rad`` about a body- and space-fixed axis (an indexing head).
 
     The body rests, turns with a minimum-jerk profile, and rests again. The
@@ -110,6 +66,11 @@ def fixed_axis_turn(
         A point of the axis, body frame, m.
     q0_nb : array (4,), optional
         Attitude before the turn; identity (level, facing north) by default.
+
+    Returns
+    -------
+    FlightTruth
+        The pivot stays at the NED origin; the body origin circles it.
     """
     for name, v in (("duration_s", duration_s), ("rate_hz", rate_hz)):
         if not np.isfinite(v) or v <= 0:
@@ -130,5 +91,9 @@ def fixed_axis_turn(
     q = quat_normalize(quat_multiply(q0, quat_from_axis_angle(k, alpha)))
     d = -np.asarray(pivot_b_m, dtype=float)  # origin relative to the pivot, body frame
     a_b = np.cross(wd, d) + np.cross(w, np.cross(w, d))
-    g_b = np.einsum("tji,j->ti", dcm_from_quat(q), gravity_n_mps2())
-    return RigidBodyTruth(t, q, w, wd, a_b - g_b)
+    c = dcm_from_quat(q)
+    g_b = np.einsum("tji,j->ti", c, gravity_n_mps2())
+    # the origin about the pivot, which stays at the NED origin
+    pos = np.einsum("tij,j->ti", c, d)
+    vel = np.einsum("tij,tj->ti", c, np.cross(w, d))
+    return FlightTruth(t, pos, vel, q, w, wd, a_b - g_b)

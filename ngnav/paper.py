@@ -34,10 +34,10 @@ from ngnav.compensation import compensate
 from ngnav.conventions import G0_MPS2
 from ngnav.frontend import ArraySolver
 from ngnav.layout import ArrayLayout, kinematic_features, layout_by_name
-from ngnav.motion import RigidBodyTruth, fixed_axis_turn
+from ngnav.motion import fixed_axis_turn
 from ngnav.mounting import MountingErrors
 from ngnav.predictors import GreyPredictor, LastValuePredictor, LinePredictor, OraclePredictor
-from ngnav.records import ArraySamples
+from ngnav.records import ArraySamples, FlightTruth
 from ngnav.scenario import TiltTableScenario
 from ngnav.sensors import AccelerometerModel, ChannelErrors
 from ngnav.strapdown import integrate_rate, rotation_angle_about
@@ -188,7 +188,7 @@ def turn_axis_b(scn: TiltTableScenario) -> np.ndarray:
     return np.array([0.0, 0.0, 1.0]) if scn.test.plane == "horizontal" else np.array([1.0, 0, 0])
 
 
-def turn_truth(scn: TiltTableScenario, angle_rad: float) -> RigidBodyTruth:
+def turn_truth(scn: TiltTableScenario, angle_rad: float) -> FlightTruth:
     """Exact kinematics of one indexing-head turn of the scenario."""
     axis = turn_axis_b(scn)
     return fixed_axis_turn(

@@ -305,3 +305,51 @@ class RunResult:
     rate_dim: int = field(default=3)
     state_size: int = 0
     rate_nis_t_s: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class FlightTruth:
+    """Exact truth of a moving body at the array's sample times (a flight, a turntable).
+
+    Attributes
+    ----------
+    t_s : array (T,)
+        Times, s.
+    pos_ned_m : array (T, 3)
+        Position of the body origin in the tangent plane, NED, m.
+    vel_ned_mps : array (T, 3)
+        Velocity of the body origin, NED, m/s.
+    q_nb : array (T, 4)
+        Attitude, body (FRD) to NED, Hamilton scalar first.
+    omega_b_rps, omega_dot_b_rps2 : array (T, 3)
+        Body rate (rad/s) and its derivative (rad/s^2), body frame.
+    f_b_mps2 : array (T, 3)
+        Specific force at the body origin, body frame, m/s^2.
+    """
+
+    t_s: np.ndarray
+    pos_ned_m: np.ndarray
+    vel_ned_mps: np.ndarray
+    q_nb: np.ndarray
+    omega_b_rps: np.ndarray
+    omega_dot_b_rps2: np.ndarray
+    f_b_mps2: np.ndarray
+
+    def __post_init__(self) -> None:
+        freeze_fields(
+            self,
+            {
+                "t_s": (),
+                "pos_ned_m": (3,),
+                "vel_ned_mps": (3,),
+                "q_nb": (4,),
+                "omega_b_rps": (3,),
+                "omega_dot_b_rps2": (3,),
+                "f_b_mps2": (3,),
+            },
+        )
+        check_time_axis(self.t_s)
+
+    def loop_state(self) -> np.ndarray:
+        """True values (T, 9) of the compensation loop's channels (rate, rate dot, force)."""
+        return np.hstack([self.omega_b_rps, self.omega_dot_b_rps2, self.f_b_mps2])

@@ -236,3 +236,29 @@ def test_sensor_simulation_statistics():
     assert not sat.any()
     big, sat2, _ = spec.simulate(np.full((10, 9), 10 * G0_MPS2), 1000.0, np.zeros(9), rng)
     assert sat2.all() and np.allclose(np.abs(big), spec.range_g * G0_MPS2, atol=1e-3)
+
+
+def test_a_turntable_truth_is_a_whole_body_truth():
+    """The indexing head's truth (one record type for every simulation): the origin's
+    position and velocity circle the fixed pivot, and differentiate into each other
+    and into the specific force plus gravity, as any body's must."""
+    from ngnav.conventions import gravity_n_mps2
+    from ngnav.motion import fixed_axis_turn
+    from ngnav.rotation import dcm_from_quat
+
+    pivot = np.array([0.03, -0.05, 0.02])
+    tr = fixed_axis_turn(
+        np.deg2rad(90.0), duration_s=2.0, rest_before_s=0.5, rest_after_s=0.5,
+        rate_hz=2000.0, axis_b=np.array([0.0, 0.0, 1.0]), pivot_b_m=pivot,
+    )
+    np.testing.assert_allclose(np.linalg.norm(tr.pos_ned_m, axis=1), np.linalg.norm(pivot))
+    dt = 1 / 2000.0
+    vel_fd = (tr.pos_ned_m[2:] - tr.pos_ned_m[:-2]) / (2 * dt)
+    np.testing.assert_allclose(vel_fd, tr.vel_ned_mps[1:-1], atol=1e-6)
+    acc_fd = (tr.vel_ned_mps[2:] - tr.vel_ned_mps[:-2]) / (2 * dt)
+    c = dcm_from_quat(tr.q_nb[1:-1])
+    f_n = np.einsum("tij,tj->ti", c, tr.f_b_mps2[1:-1])
+    # the central difference is second order except where the minimum-jerk step's jerk
+    # jumps (its start and end: 60 angle / duration^3 times the arm), off by dt * jump / 4
+    jump = np.deg2rad(90.0) * 60.0 / 2.0**3 * np.linalg.norm(pivot)
+    np.testing.assert_allclose(acc_fd, f_n + gravity_n_mps2(), atol=dt * jump / 4 + 1e-6)
