@@ -245,7 +245,7 @@ class MeasurementsMixin:
                 _, cwr, _, hv = self.gps_model(self.q, self.w)
                 yv = vel_ned_mps - (self.vel + cwr)
                 nis_v = quadratic_form(yv, hv @ self.P @ hv.T + np.eye(3) * vel_sigma_mps**2)
-                self._put_on_fix(
+                self.reset_to_fix(
                     pos_ned_m - self.vel * dt_fix_s, vel_ned_mps, pos_sigma_m, vel_sigma_mps
                 )
                 self.counters.gps_gap_resets += 1

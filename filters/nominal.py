@@ -236,23 +236,13 @@ class NominalMixin:
         pos_sigma_m: np.ndarray,
         vel_sigma_mps: float,
     ) -> None:
-        """Documented fallback: put position and velocity on a fix (antenna, NED).
+        """Put position and velocity on a fix (antenna, NED): the documented fallback.
 
-        Used after a run of rejected fixes and for the first fix after an
-        outage. The antenna lever arm is removed with the current attitude and
-        rate; position and velocity get the fix's variances and lose their
+        Used after a run of rejected fixes and for the first fix after an outage (the
+        caller counts which). The antenna lever arm is removed with the current attitude
+        and rate; position and velocity get the fix's variances and lose their
         correlations with the other states, which keep theirs.
         """
-        self._put_on_fix(pos_ned_m, vel_ned_mps, pos_sigma_m, vel_sigma_mps)
-        self.counters.gps_resets += 1
-
-    def _put_on_fix(
-        self,
-        pos_ned_m: np.ndarray,
-        vel_ned_mps: np.ndarray,
-        pos_sigma_m: np.ndarray,
-        vel_sigma_mps: float,
-    ) -> None:
         c = dcm_from_quat(self.q)
         self.pos = np.asarray(pos_ned_m, dtype=float) - c @ self.antenna_b_m
         self.vel = np.asarray(vel_ned_mps, dtype=float) - c @ np.cross(self.w, self.antenna_b_m)

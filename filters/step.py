@@ -319,6 +319,7 @@ class StepMixin:
             self._p_bound = p_bound
         if nf.consecutive_position_rejects >= RESET_AFTER_REJECTS:
             nf.reset_to_fix(ned, vel, sig, vacc)
+            nf.counters.gps_resets += 1
         elif nf.consecutive_velocity_rejects >= REOPEN_AFTER_VELOCITY_REJECTS:
             # the velocity prediction runs away from every fix: the tilt or the rate is
             # lost (gravity leaks through a wrong tilt). Put position and velocity on the
@@ -332,6 +333,7 @@ class StepMixin:
                 )
             self._t_last_reopen = nf.t_s
             nf.reset_to_fix(ned, vel, sig, vacc)
+            nf.counters.gps_resets += 1
             nf.reopen_attitude(REOPEN_TILT_SIGMA_RAD, REOPEN_RATE_SIGMA_RPS)
         if self._slip_sigma > 0 and not self._heading_pending:
             # with the no-sideslip model the heading is the course: after a reset of
