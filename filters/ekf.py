@@ -139,11 +139,11 @@ class NavFilter(
         (:func:`filters.vehicle_model.prior_weighted_count`): in GPS-held flight, where
         the prior along the constraint is hundreds to thousands of times R, the count
         falls to about 1 and the constraint's direction keeps the remainder's own
-        variance after the update (docs/notes/filter-notes.md, "the count by the prior's weight").
-        The
-        angle-of-attack update keeps its counts: its prior along the constraint holds
-        the lift law's states, which persist from one update to the next rather than
-        being fresh process noise. False (the default): the configured counts everywhere.
+        variance after the update (docs/notes/filter-notes.md, "the count by the prior's
+        weight"). The angle-of-attack update keeps its counts: its prior along the
+        constraint holds the lift law's states, which persist from one update to the next
+        rather than being fresh process noise. False (the default): the configured counts
+        everywhere; the pipeline turns it on for a fixed-wing.
     body_velocity_error : bool
         Take the velocity error in the body frame: the truth is
         ``exp(dtheta) C (C^T v + dv_b)``, and the Kalman state's ``VEL`` holds its NED
