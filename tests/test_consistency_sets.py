@@ -1,4 +1,5 @@
-"""``ngnav consistency --sets``: disjoint run sets, each judged as the target judges one."""
+"""The consistency study (``python -m studies.consistency``): ``--sets`` (disjoint run sets,
+each judged as the target judges one), ``--cycle`` and ``--tails``."""
 
 import json
 
@@ -6,8 +7,8 @@ import numpy as np
 import pytest
 
 from filters.evaluate import chi2_bounds
-from filters.experiments import consistency, set_shares
-from tests.helpers import SHORT_TACTICAL_ARGS, run_cli
+from studies.consistency import consistency_study, nees_cycle, nees_tails, set_shares
+from tests.helpers import SHORT_TACTICAL_ARGS, run_study
 
 
 def _result(run: int, pos_nees: np.ndarray) -> dict:
@@ -59,16 +60,19 @@ def test_sets_must_be_positive():
     from ngnav.flight_scenario import load_flight
 
     with pytest.raises(ValueError, match="sets must be at least 1"):
-        consistency(load_flight("tactical"), runs=1, sets=0)
+        consistency_study(load_flight("tactical"), runs=1, sets=0)
+    proc = run_study("consistency", "--scenario", "tactical", "--sets", "0", check=False)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == "studies.consistency: error: sets must be at least 1, got 0"
 
 
 def test_cli_sets_repeat_a_single_set_exactly():
-    """``ngnav consistency --runs 1 --sets 2`` as a real subprocess: set 0 is run 0,
+    """``python -m studies.consistency --runs 1 --sets 2`` as a real subprocess: set 0 is run 0,
     so its shares (the control's too) equal those of ``--runs 1`` (run 0 alone) to the
     last digit; set 1 is run 1; ``blocks`` then average both runs."""
     args = ("consistency", *SHORT_TACTICAL_ARGS, "--workers", "1", "--json")
-    one = json.loads(run_cli(*args, "--runs", "1").stdout)
-    two = json.loads(run_cli(*args, "--runs", "1", "--sets", "2").stdout)
+    one = json.loads(run_study(*args, "--runs", "1").stdout)
+    two = json.loads(run_study(*args, "--runs", "1", "--sets", "2").stdout)
     assert two["runs"] == 2 and one["runs"] == 1
     s0, s1 = two["sets"]
     assert (s0["first_run"], s0["runs"], s1["first_run"], s1["runs"]) == (0, 1, 1, 1)
@@ -83,27 +87,37 @@ def test_cli_sets_repeat_a_single_set_exactly():
     assert two["blocks"]["NEES all"]["lower"] == pytest.approx(chi2_bounds(12, 2)[0])
 
 
-def test_block_mean_carries_its_standard_error_over_runs():
-    """``mean_se`` counts each run once: four runs whose statistic is 1, 2, 3 and 4 at
-    every epoch (NaN epochs skipped) give std(1..4) / 2, however many epochs."""
-    from filters.experiments import _block
-
-    per_run = [np.full(30, v) for v in (1.0, 2.0, 3.0, 4.0)]
-    per_run[2][:10] = np.nan
-    out, _ = _block(per_run, 3, 4)
-    # the mean is over epochs of the run average: 7/3 where run 3 has no value
-    assert out["mean"] == pytest.approx((10 * 7 / 3 + 20 * 2.5) / 30)
-    assert out["mean_se"] == pytest.approx(np.std([1, 2, 3, 4], ddof=1) / 2, rel=1e-12)
-    assert np.isnan(_block(per_run[:1], 3, 1)[0]["mean_se"])
+def test_nees_cycle_phases():
+    """Phase means and shares of a sequence built with a known dip at one phase of a
+    0.2 s cycle on a 0.01 s grid; a cycle off the grid or non-positive is refused."""
+    t = 3.0 + np.arange(2000) * 0.01
+    k = np.arange(2000) % 20
+    rng = np.random.default_rng(5)
+    joint = 12.0 + rng.uniform(-0.5, 0.5, 2000)
+    joint[k == 1] = 9.0  # below the lower bound at phase 1 only
+    joint[(k == 7) & (np.arange(2000) % 40 == 7)] = 14.0  # above on half of phase 7
+    rows = nees_cycle(t, {"all": joint, "pos": k.astype(float)}, 0.2, {"all": (10.7, 13.4)})
+    assert len(rows) == 20
+    assert [r["phase_s"] for r in rows] == pytest.approx(np.arange(20) * 0.01)
+    assert [r["pos"] for r in rows] == pytest.approx(np.arange(20))  # each phase its own
+    assert rows[1]["all"] == pytest.approx(9.0) and rows[1]["all_below"] == 1.0
+    assert rows[7]["all_above"] == pytest.approx(0.5) and rows[7]["all_below"] == 0.0
+    others = [r for i, r in enumerate(rows) if i not in (1, 7)]
+    assert all(r["all_below"] == 0.0 and r["all_above"] == 0.0 for r in others)
+    assert np.mean([r["all"] for r in others]) == pytest.approx(12.0, abs=0.05)
+    with pytest.raises(ValueError, match="whole number"):
+        nees_cycle(t, {"all": joint}, 0.215, {})
+    with pytest.raises(ValueError, match="cycle must be"):
+        nees_cycle(t, {"all": joint}, -0.2, {})
 
 
 def test_cli_cycle_profile():
-    """``ngnav consistency --cycle 0.2`` as a real subprocess: twenty phases of the
+    """``python -m studies.consistency --cycle 0.2`` as a real subprocess: twenty phases of the
     filter's 0.01 s epochs, whose epoch-weighted means give back each block's mean,
     with the joint's shares below and above; the text report prints one row per
     phase; a cycle off the epoch grid fails with the reason."""
     base = ("consistency", *SHORT_TACTICAL_ARGS, "--workers", "1", "--runs", "1")
-    out = json.loads(run_cli(*base, "--cycle", "0.2", "--json").stdout)
+    out = json.loads(run_study(*base, "--cycle", "0.2", "--json").stdout)
     rows = out["cycle"]
     assert [r["phase_s"] for r in rows] == pytest.approx(np.arange(20) * 0.01)
     # epochs 0 .. E-1 fall on phase e mod 20: the first E mod 20 phases hold one more
@@ -115,14 +129,14 @@ def test_cli_cycle_profile():
         mean = out["blocks"][f"NEES {name}"]["mean"]
         assert np.sum(counts * phase_means) / counts.sum() == pytest.approx(mean, rel=1e-5)
     assert all(0.0 <= r["all_below"] <= 1.0 and 0.0 <= r["all_above"] <= 1.0 for r in rows)
-    text = run_cli(*base, "--cycle", "0.2").stdout
+    text = run_study(*base, "--cycle", "0.2").stdout
     assert "by phase in the cycle" in text
     verdict = next(line for line in text.splitlines() if line.startswith("  target ("))
     missed = [k for k, v in out["blocks"].items() if v["share_inside"] < 0.9]
     assert verdict.endswith("met") == (not missed)
     assert all(f"{k} {100 * out['blocks'][k]['share_inside']:.1f} %" in verdict for k in missed)
     assert sum(line.startswith("      0.") for line in text.splitlines()) >= 20
-    bad = run_cli(*base, "--cycle", "0.215", check=False)
+    bad = run_study(*base, "--cycle", "0.215", check=False)
     assert bad.returncode != 0 and "whole number" in bad.stderr
 
 
@@ -134,8 +148,6 @@ def test_tails_tell_a_scale_error_from_a_heavy_tail():
     Tolerances are the ratios' sampling error on 40 000 draws (the median's about
     0.5 %, the 0.99 quantile's about 2 %, the variance's about 3 %), widened 3-4 times."""
     from scipy.stats import chi2
-
-    from filters.experiments import nees_tails
 
     rng = np.random.default_rng([2026, 7])
     runs, epochs = 200, 400
@@ -174,12 +186,12 @@ def test_tails_tell_a_scale_error_from_a_heavy_tail():
 
 
 def test_cli_tails():
-    """``ngnav consistency --tails 10`` as a real subprocess: a row per 10 s window for
+    """``python -m studies.consistency --tails 10`` as a real subprocess: a row per 10 s window for
     every block, each window pooling every run's epochs in it (the 60 s flight's
     0.01 s epochs), its mean ratio equal to the profile's run-averaged mean over the
     block's dof; the text report prints the joint's rows."""
     base = ("consistency", *SHORT_TACTICAL_ARGS, "--workers", "1", "--runs", "2")
-    out = json.loads(run_cli(*base, "--tails", "10", "--profile", "10", "--json").stdout)
+    out = json.loads(run_study(*base, "--tails", "10", "--profile", "10", "--json").stdout)
     dims = {"pos": 3, "vel": 3, "att": 3, "rate": 3, "all": 12}
     for name, dim in dims.items():
         rows = out["tails"][name]
@@ -190,6 +202,6 @@ def test_cli_tails():
         assert sum(r["n"] for r in rows) == 2 * (round(60.0 / 0.01) + 1)
         for r, p in zip(rows, out["profile"], strict=True):
             assert r["mean_ratio"] * dim == pytest.approx(p[name], rel=1e-5)
-    text = run_cli(*base, "--tails", "10").stdout
+    text = run_study(*base, "--tails", "10").stdout
     assert "spread over runs by window" in text
     assert sum(line.startswith("      10.0-") for line in text.splitlines()) == 1

@@ -1,12 +1,12 @@
-"""The perfect-array control (filters.control): exact, and chi-square by construction."""
+"""The perfect-array control (studies.control): exact, and chi-square by construction."""
 
 import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from filters.control import fix_noise, perfect_array_control, process_noise_control
 from ngnav.geodesy import LocalTangentPlane
 from ngnav.gps import GpsFixes, GpsReceiverModel
+from studies.control import fix_noise, perfect_array_control, process_noise_control
 
 
 def _fixes(t_s: np.ndarray, h=1.5, v=3.0, va=0.1) -> GpsFixes:

@@ -9,17 +9,15 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from filters.ekf import FilterNoise, NavFilter
-from filters.evaluate import chi2_bounds, run_errors, summarise, truth_aoa_rad, truth_indices
-from filters.experiments import (
+from filters.comparison import (
     EvaluationRow,
-    consistency,
     evaluate_scenario,
     gap_before_divergence,
-    nees_cycle,
-    nees_profile,
     run_configuration,
 )
+from filters.consistency import consistency, nees_profile
+from filters.ekf import FilterNoise, NavFilter
+from filters.evaluate import chi2_bounds, run_errors, summarise, truth_aoa_rad, truth_indices
 from filters.pipeline import run_filter
 from ngnav.errors import CovarianceError
 from ngnav.flight_scenario import load_flight
@@ -405,30 +403,6 @@ def test_nees_profile_windows():
     assert rows[0]["pos"] == pytest.approx(2.45) and rows[1]["pos"] == pytest.approx(7.45)
     with pytest.raises(ValueError, match="profile window"):
         nees_profile(t, {"pos": t}, 0.0)
-
-
-def test_nees_cycle_phases():
-    """Phase means and shares of a sequence built with a known dip at one phase of a
-    0.2 s cycle on a 0.01 s grid; a cycle off the grid or non-positive is refused."""
-    t = 3.0 + np.arange(2000) * 0.01
-    k = np.arange(2000) % 20
-    rng = np.random.default_rng(5)
-    joint = 12.0 + rng.uniform(-0.5, 0.5, 2000)
-    joint[k == 1] = 9.0  # below the lower bound at phase 1 only
-    joint[(k == 7) & (np.arange(2000) % 40 == 7)] = 14.0  # above on half of phase 7
-    rows = nees_cycle(t, {"all": joint, "pos": k.astype(float)}, 0.2, {"all": (10.7, 13.4)})
-    assert len(rows) == 20
-    assert [r["phase_s"] for r in rows] == pytest.approx(np.arange(20) * 0.01)
-    assert [r["pos"] for r in rows] == pytest.approx(np.arange(20))  # each phase its own
-    assert rows[1]["all"] == pytest.approx(9.0) and rows[1]["all_below"] == 1.0
-    assert rows[7]["all_above"] == pytest.approx(0.5) and rows[7]["all_below"] == 0.0
-    others = [r for i, r in enumerate(rows) if i not in (1, 7)]
-    assert all(r["all_below"] == 0.0 and r["all_above"] == 0.0 for r in others)
-    assert np.mean([r["all"] for r in others]) == pytest.approx(12.0, abs=0.05)
-    with pytest.raises(ValueError, match="whole number"):
-        nees_cycle(t, {"all": joint}, 0.215, {})
-    with pytest.raises(ValueError, match="cycle must be"):
-        nees_cycle(t, {"all": joint}, -0.2, {})
 
 
 def test_first_fix_after_an_outage_resets_position_and_velocity(tactical):

@@ -7,8 +7,8 @@ import pytest
 from scipy.stats import binom
 
 from filters.evaluate import chi2_bounds
-from filters.share_reference import consistent_share, statistic_autocorrelation
-from tests.helpers import SHORT_TACTICAL_ARGS, run_cli
+from studies.share_reference import consistent_share, statistic_autocorrelation
+from tests.helpers import SHORT_TACTICAL_ARGS, run_study
 
 
 def test_independent_epochs_give_the_binomial_share():
@@ -91,10 +91,10 @@ def test_autocorrelation_leaves_out_missing_epochs_and_rejects_bad_shapes():
 
 
 def test_cli_prints_the_reference_beside_each_block():
-    """``ngnav consistency --reference`` as a real subprocess: every block, the
-    control's too, carries the consistent filter's share, a median at or above its 5th
-    percentile."""
-    proc = run_cli(
+    """``python -m studies.consistency --reference`` as a real subprocess: every block,
+    the control's too, carries the consistent filter's share, a median at or above its
+    5th percentile."""
+    proc = run_study(
         "consistency",
         *SHORT_TACTICAL_ARGS,
         "--runs",

@@ -36,6 +36,7 @@ from ngnav.flight import FlightTruth
 from ngnav.geodesy import LocalTangentPlane
 from ngnav.gps import GpsFixes, antenna_truth
 from ngnav.records import freeze_fields
+from ngnav.simulate import SimulatedRun
 
 
 @dataclass(frozen=True)
@@ -180,3 +181,28 @@ def process_noise_control(
         nees_pos[k] = e[0:3] @ np.linalg.solve(p[0:3, 0:3], e[0:3])
         nees_vel[k] = e[3:6] @ np.linalg.solve(p[3:6, 3:6], e[3:6])
     return ControlNees(np.asarray(fixes.t_s, dtype=float), nees_pos, nees_vel)
+
+
+def control_extras(sim: SimulatedRun, i: int) -> dict:
+    """Both controls on run ``i``'s own fixes, as entries of its Monte Carlo record.
+
+    The hook :func:`filters.consistency.monte_carlo_runs` adds to each run
+    (``extras``): ``control_pos``, ``control_vel`` (:func:`perfect_array_control`,
+    glitched fixes not fused), ``control_pos-pn``, ``control_vel-pn``
+    (:func:`process_noise_control`, its own truth from ``default_rng([CONTROL_SEED,
+    i])``) and ``control_t_s``, the fix times.
+    """
+    cfg = sim.config
+    ltp = LocalTangentPlane(cfg.lat0_deg, cfg.lon0_deg, cfg.alt0_m)
+    fix_err = fix_noise(sim.fixes, sim.truth, ltp, cfg.antenna_b_m)
+    control = perfect_array_control(sim.fixes, fix_err, sim.glitched)
+    control_pn = process_noise_control(
+        sim.fixes, fix_err, np.random.default_rng([CONTROL_SEED, i]), skip=sim.glitched
+    )
+    return {
+        "control_pos": control.nees_pos,
+        "control_vel": control.nees_vel,
+        "control_t_s": control.t_s,
+        "control_pos-pn": control_pn.nees_pos,
+        "control_vel-pn": control_pn.nees_vel,
+    }

@@ -1,0 +1,310 @@
+"""Monte Carlo consistency of the filter on a simulated scenario (``ngnav consistency``).
+
+``consistency`` runs R Monte Carlo flights (``default_rng([seed, i])``, through
+:func:`ngnav.simulate.simulate_flight`) in parallel with dask and judges each
+block's run-averaged NEES, and the NIS, against its two-sided 95 % chi-square
+bounds. Its parts are public for the research built on it
+(``python -m studies.consistency``): :func:`monte_carlo_runs` (with a hook that adds
+to each run's record), :func:`block_series`, :func:`summarise_block`,
+:func:`summarise_blocks` and :func:`summarise_runs`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from filters.evaluate import (
+    TARGET_SHARE,
+    aoa_nees,
+    chi2_bounds,
+    nees,
+    run_errors,
+    share_inside,
+)
+from filters.pipeline import run_filter
+from ngnav.errors import CovarianceError
+from ngnav.flight_scenario import FlightScenario
+from ngnav.simulate import SimulatedRun, simulate_flight
+
+#: A hook adding entries to a run's record: ``(simulated run, run index) -> dict``. It
+#: must be picklable (a module-level function) to run in dask's worker processes.
+RunExtras = Callable[[SimulatedRun, int], dict]
+
+
+def one_run(scn: FlightScenario, i: int, method: str, extras: RunExtras | None = None) -> dict:
+    """Run ``i`` of the Monte Carlo set: the filter's NEES per block and NIS per epoch.
+
+    Returns ``{"run": i, "diverged": reason}`` when the covariance check fails;
+    otherwise the run's record (``nees`` per block at the epochs ``t_s``; GPS NIS at
+    ``t_fix_s``, the glitched fixes NaN; the rate NIS at ``rate_t_s``; ``att_rms_deg``),
+    with ``extras(sim, i)``'s entries added when given.
+    """
+    sim = simulate_flight(scn, i)
+    try:
+        res = run_filter(
+            sim.samples,
+            sim.fixes,
+            sim.config,
+            compensation=method,
+            true_layout=sim.true_layout(),
+            truth=sim.truth,
+        )
+    except CovarianceError as exc:
+        return {"run": i, "diverged": str(exc)}
+    errs = run_errors(res.estimates, sim.truth)
+    ne = {k: v.astype(np.float32) for k, v in nees(errs, res.estimates.cov_nav).items()}
+    ne_aoa = aoa_nees(res.estimates, sim.truth)
+    if ne_aoa is not None:
+        ne["aoa"] = ne_aoa.astype(np.float32)
+    inn = res.innovations
+    keep = np.ones(inn.t_s.shape, dtype=bool)
+    for tg in sim.fixes.t_s[sim.glitched]:
+        keep &= np.abs(inn.t_s - tg) > 1e-9
+    out = {
+        "run": i,
+        "nees": ne,
+        "t_s": res.estimates.t_s,
+        "nis_pos": np.where(keep, inn.nis_pos, np.nan),
+        "nis_vel": inn.nis_vel,
+        "t_fix_s": inn.t_s,
+        "rate_nis": res.rate_nis,
+        "rate_t_s": res.rate_nis_t_s,
+        "rate_dim": res.rate_dim,
+        "att_rms_deg": float(np.rad2deg(np.sqrt(np.mean(np.sum(errs.att_ned_rad**2, axis=1))))),
+    }
+    if extras is not None:
+        out.update(extras(sim, i))
+    return out
+
+
+def monte_carlo_runs(
+    scn: FlightScenario,
+    runs: int,
+    method: str,
+    workers: int = 2,
+    progress: bool = False,
+    extras: RunExtras | None = None,
+) -> tuple[list[dict], list[dict]]:
+    """Runs ``0 .. runs - 1`` (:func:`one_run`) on ``workers`` dask processes (1: here).
+
+    Returns the records of the runs that did not diverge, in run order, and the
+    diverged ones as ``{"run", "reason"}``. Raises RuntimeError when every run
+    diverged or the runs' epochs differ (they cannot be averaged).
+    """
+    import dask
+    from tqdm import tqdm
+
+    results: list[dict] = []
+    bar = tqdm(total=runs, desc=f"consistency {method}", disable=not progress, unit="run")
+    chunk = max(1, workers)
+    for start in range(0, runs, chunk):
+        tasks = [
+            dask.delayed(one_run)(scn, i, method, extras)
+            for i in range(start, min(runs, start + chunk))
+        ]
+        if workers > 1:
+            results += dask.compute(*tasks, scheduler="processes", num_workers=workers)
+        else:
+            results += dask.compute(*tasks, scheduler="synchronous")
+        bar.update(len(tasks))
+    bar.close()
+    diverged = [{"run": r["run"], "reason": r["diverged"]} for r in results if "diverged" in r]
+    results = [r for r in results if "diverged" not in r]
+    if not results:
+        raise RuntimeError(f"every Monte Carlo run diverged: {diverged}")
+    lengths = {r["t_s"].shape[0] for r in results}
+    if len(lengths) != 1:
+        raise RuntimeError("Monte Carlo runs produced different epochs; cannot average")
+    return results, diverged
+
+
+def finite_mean(x: np.ndarray, axis: int | None = None) -> np.ndarray:
+    """Mean of the finite values along ``axis``; NaN where there is none (no warning)."""
+    ok = np.isfinite(x)
+    n = ok.sum(axis=axis)
+    total = np.where(ok, x, 0.0).sum(axis=axis)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, total / np.maximum(n, 1), np.nan)
+
+
+def _mean_se(stacked: np.ndarray) -> float:
+    """Standard error of a block's mean statistic from its runs (R, E): the spread of
+    the runs' own means over their epochs, over sqrt(R); NaN below two runs. The runs
+    are independent, their epochs not: this counts each run once."""
+    per_run = finite_mean(stacked, axis=1)
+    per_run = per_run[np.isfinite(per_run)]
+    if per_run.shape[0] < 2:
+        return float("nan")
+    return float(np.std(per_run, ddof=1) / np.sqrt(per_run.shape[0]))
+
+
+def summarise_block(per_run: list[np.ndarray], dim: int, runs: int) -> tuple[dict, np.ndarray]:
+    """Run-averaged statistic of one block against its two-sided 95 % bounds.
+
+    Returns the summary (with the shares below and above the bounds: a
+    pessimistic filter falls below, an optimistic one above; ``mean_se``, the
+    standard error of ``mean`` from the runs' spread) and the per-epoch
+    average (E,).
+    """
+    stacked = np.vstack(per_run)
+    avg = finite_mean(stacked, axis=0)
+    lo, hi = chi2_bounds(dim, runs)
+    ok = np.isfinite(avg)
+    out = {
+        "dim": dim,
+        "lower": lo,
+        "upper": hi,
+        "mean": float(finite_mean(avg)),
+        "mean_se": _mean_se(stacked),
+        "share_inside": share_inside(avg, dim, runs),
+        "share_below": float(np.mean(avg[ok] < lo)),
+        "share_above": float(np.mean(avg[ok] > hi)),
+    }
+    return out, avg
+
+
+#: The NEES blocks judged, name to degrees of freedom (``aoa``, 1, is added when the
+#: runs carry the angle-of-attack state).
+NEES_DIMS: dict[str, int] = {"pos": 3, "vel": 3, "att": 3, "rate": 3, "all": 12}
+
+
+def nees_dims(results: list[dict]) -> dict[str, int]:
+    """The NEES blocks of these runs, name to dof (:data:`NEES_DIMS`, ``aoa`` if present)."""
+    dims = dict(NEES_DIMS)
+    if "aoa" in results[0]["nees"]:
+        dims["aoa"] = 1  # the angle-of-attack state (NaN where the truth has none)
+    return dims
+
+
+def block_series(
+    results: list[dict], dims: dict[str, int], from_s: float | None = None
+) -> dict[str, tuple[list[np.ndarray], int]]:
+    """Every block's per-run series from ``from_s`` s on (all epochs if None) and its dof.
+
+    The NEES blocks (``dims``: name to dof) as ``NEES <name>``, then ``NIS gps pos``,
+    ``NIS gps vel`` and, when the runs have rate products, ``NIS rate``.
+    """
+
+    def since(values: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+        return values if from_s is None else values[t_s >= from_s]
+
+    out = {}
+    for name, d in dims.items():
+        out[f"NEES {name}"] = ([since(r["nees"][name], r["t_s"]) for r in results], d)
+    for key, d in (("nis_pos", 3), ("nis_vel", 3)):
+        out[f"NIS gps {key[4:]}"] = ([since(r[key], r["t_fix_s"]) for r in results], d)
+    nq = results[0]["rate_dim"]
+    if nq:
+        out["NIS rate"] = ([since(r["rate_nis"], r["rate_t_s"]) for r in results], nq)
+    return out
+
+
+def summarise_blocks(
+    results: list[dict], dims: dict[str, int], runs: int, from_s: float | None = None
+) -> tuple[dict, dict[str, np.ndarray]]:
+    """Every block of :func:`block_series` summarised by :func:`summarise_block`; and the
+    NEES blocks' per-epoch averages (by their names in ``dims``)."""
+    blocks, averages = {}, {}
+    for name, (per_run, d) in block_series(results, dims, from_s).items():
+        blocks[name], avg = summarise_block(per_run, d, runs)
+        if name.startswith("NEES "):
+            averages[name[5:]] = avg
+    return blocks, averages
+
+
+def nees_profile(t_s: np.ndarray, averages: dict[str, np.ndarray], window_s: float) -> list[dict]:
+    """Mean of each run-averaged NEES block over consecutive windows of ``window_s`` s.
+
+    ``averages`` maps block names to per-epoch averages (E,) at the times
+    ``t_s`` (E,). Each row holds the window ``[t0_s, t1_s)`` and the block means:
+    where in a flight a filter is optimistic or pessimistic.
+    """
+    if not (np.isfinite(window_s) and window_s > 0):
+        raise ValueError(f"profile window must be a positive number of seconds, got {window_s}")
+    rows = []
+    for t0 in np.arange(t_s[0], t_s[-1] + 1e-9, window_s):
+        m = (t_s >= t0) & (t_s < t0 + window_s)
+        if np.any(m):
+            rows.append(
+                {
+                    "t0_s": float(t0),
+                    "t1_s": float(t0 + window_s),
+                    **{k: float(finite_mean(v[m])) for k, v in averages.items()},
+                }
+            )
+    return rows
+
+
+def target_verdict(blocks: dict[str, dict]) -> dict:
+    """Issue 3's consistency target on one set of blocks: every NEES block and NIS inside
+    its bounds on >= :data:`TARGET_SHARE` of epochs.
+
+    Returns ``{"share": TARGET_SHARE, "met": bool, "misses": {name: share_inside}}``,
+    ``misses`` holding the blocks below the share (empty when met).
+    """
+    misses = {
+        name: b["share_inside"] for name, b in blocks.items() if b["share_inside"] < TARGET_SHARE
+    }
+    return {"share": TARGET_SHARE, "met": not misses, "misses": misses}
+
+
+def summarise_runs(
+    scenario: str,
+    method: str,
+    results: list[dict],
+    diverged: list[dict],
+    profile_s: float | None = None,
+    from_s: float | None = None,
+) -> tuple[dict, dict[str, np.ndarray]]:
+    """The report of :func:`consistency` on runs of :func:`monte_carlo_runs`, and the NEES
+    blocks' per-epoch averages over the whole run."""
+    runs = len(results)
+    out: dict = {
+        "scenario": scenario,
+        "runs": runs,
+        "method": method,
+        "from_s": from_s,
+        "diverged": diverged,
+    }
+    dims = nees_dims(results)
+    out["blocks"], averages = summarise_blocks(results, dims, runs)
+    if from_s is not None:
+        out["blocks_from"] = summarise_blocks(results, dims, runs, from_s)[0]
+    if profile_s is not None:
+        out["profile"] = nees_profile(results[0]["t_s"], averages, profile_s)
+    out["target"] = target_verdict(out["blocks"])
+    out["att_rms_deg_median"] = float(np.median([r["att_rms_deg"] for r in results]))
+    return out, averages
+
+
+def consistency(
+    scn: FlightScenario,
+    runs: int,
+    method: str | None = None,
+    workers: int = 2,
+    progress: bool = False,
+    profile_s: float | None = None,
+    from_s: float | None = None,
+) -> dict:
+    """NEES/NIS over ``runs`` Monte Carlo runs; share of epochs inside the 95 % bounds.
+
+    Runs execute in parallel with dask's process scheduler (``workers``
+    processes; 1 runs them in this process). Glitched fixes are left out of
+    the NIS (they are meant to fail it). A run whose covariance check fails
+    is listed under ``diverged`` and left out of the averages (``runs`` counts
+    the runs averaged): a divergence is a result to report, not a crash.
+    ``blocks`` holds each NEES block and NIS (:func:`summarise_block`).
+    ``from_s`` adds ``blocks_from``: every block's statistics over the epochs from
+    that time (s) on (to judge a filter after a start-up transient); ``blocks`` and
+    the profile cover the whole run.
+    ``profile_s`` adds ``profile``: the NEES blocks' means over windows of that
+    many seconds (:func:`nees_profile`).
+    ``target`` is the target's verdict on ``blocks`` (:func:`target_verdict`).
+    """
+    method = method or scn.compensation.method
+    if runs < 1:
+        raise ValueError(f"runs must be at least 1, got {runs}")
+    results, diverged = monte_carlo_runs(scn, runs, method, workers, progress)
+    return summarise_runs(scn.name, method, results, diverged, profile_s, from_s)[0]

@@ -1,0 +1,180 @@
+"""Judging the filter on simulated flights: ``ngnav evaluate`` and ``ngnav consistency``.
+
+The report lines of ``consistency`` are public (:func:`consistency_header`,
+:func:`block_line`, :func:`target_line`, :func:`print_run_summary`,
+:func:`print_profile`): ``python -m studies.consistency`` prints its research
+beside them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from ngnav.cli import add_flight_args, flight_scenario
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from filters.comparison import evaluate_scenario, summary_dict
+
+    scn = flight_scenario(args)
+    out = evaluate_scenario(scn, args.run_index)
+    if args.json:
+        print(json.dumps({**out, "rows": [summary_dict(r) for r in out["rows"]]}, indent=2))
+        return 0
+    print(
+        f"{out['scenario']} run {args.run_index}, sensor {out['sensor']}, "
+        f"GPS {out['gps_rate_hz']:g} Hz; raw GPS horizontal RMS {out['raw_gps_horiz_rms_m']:.3f} m"
+    )
+    cols = [
+        ("horiz_rms_m", "horiz_max_m", "horiz m"),
+        ("vert_rms_m", "vert_max_m", "vert m"),
+        ("vel_rms_mps", "vel_max_mps", "vel m/s"),
+        ("roll_rms_deg", "roll_max_deg", "roll deg"),
+        ("pitch_rms_deg", "pitch_max_deg", "pitch deg"),
+        ("yaw_rms_deg", "yaw_max_deg", "yaw deg"),
+        ("rate_rms_dps", "rate_max_dps", "rate deg/s"),
+    ]
+    print(f"  {'RMS / worst':14s}" + "".join(f"{c[2]:>20s}" for c in cols))
+    for r in out["rows"]:
+        if r.failure:
+            print(f"  {r.name:14s}  {r.failure}")
+            continue
+        d = asdict(r.summary)
+        print(f"  {r.name:14s}" + "".join(f"{d[a]:>9.3f} / {d[b]:<8.3f}" for a, b, _ in cols))
+        if r.bound:
+            print(
+                f"  {'  bound (RMS)':14s}"
+                + "".join(f"{r.bound[a]:>9.3f}{'':11s}" for a, _, _ in cols)
+            )
+    for k, v in out.get("events", {}).items():
+        print(f"  {k}: {v}")
+    for k, v in out.get("targets", {}).items():
+        print(f"  {k}: {v}")
+    return 0
+
+
+def consistency_header(out: dict) -> str:
+    """The report's first line: scenario, runs averaged, compensation."""
+    return (
+        f"{out['scenario']}: {out['runs']} Monte Carlo runs, compensation {out['method']}, "
+        "two-sided 95 % chi-square bounds on the run-averaged statistic"
+    )
+
+
+def block_line(name: str, b: dict) -> str:
+    """One block's line: dof, bounds, mean and its standard error, shares inside/below/above."""
+    return (
+        f"  {name:14s} dim {b['dim']:2d}  bounds [{b['lower']:.2f}, {b['upper']:.2f}]  "
+        f"mean {b['mean']:7.2f} +-{b['mean_se']:5.2f}  inside {100 * b['share_inside']:5.1f} % of epochs "
+        f"(below {100 * b['share_below']:4.1f} %, above {100 * b['share_above']:4.1f} %)"
+    )
+
+
+def target_line(out: dict) -> str:
+    """The target's verdict on the whole run's blocks (the blocks under it named)."""
+    verdict = out["target"]
+    misses = ", ".join(f"{k} {100 * v:.1f} %" for k, v in verdict["misses"].items())
+    return (
+        f"  target (every NEES block and NIS inside on >= {100 * verdict['share']:.0f} % of "
+        f"epochs, whole run, {out['runs']} runs): "
+        + ("met" if verdict["met"] else f"not met: {misses}")
+    )
+
+
+def print_run_summary(out: dict) -> None:
+    """The median attitude RMS over the runs and each diverged run."""
+    print(f"  median attitude RMS over runs: {out['att_rms_deg_median']:.3f} deg")
+    for d in out["diverged"]:
+        print(f"  run {d['run']} diverged and is left out: {d['reason']}")
+
+
+def print_profile(rows: list[dict]) -> None:
+    """The run-averaged NEES blocks by window (``--profile``)."""
+    aoa = "aoa" in rows[0]
+    print(
+        "  run-averaged NEES by window (3 dof blocks, all: 12 dof"
+        + (", aoa: 1 dof)" if aoa else ")")
+    )
+    print("    window s        pos    vel    att   rate     all" + ("    aoa" if aoa else ""))
+    for row in rows:
+        print(
+            f"    {row['t0_s']:6.1f}-{row['t1_s']:6.1f}  {row['pos']:6.2f} {row['vel']:6.2f} "
+            f"{row['att']:6.2f} {row['rate']:6.2f} {row['all']:7.2f}"
+            + (f" {row['aoa']:6.2f}" if aoa else "")
+        )
+
+
+def cmd_consistency(args: argparse.Namespace) -> int:
+    from filters.consistency import consistency
+
+    scn = flight_scenario(args)
+    out = consistency(
+        scn,
+        args.runs,
+        args.method,
+        args.workers,
+        progress=not args.json,
+        profile_s=args.profile,
+        from_s=args.from_s,
+    )
+    if args.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    print(consistency_header(out))
+    sections = [("", out["blocks"])]
+    if "blocks_from" in out:
+        sections.append((f"  from {out['from_s']:g} s on:", out["blocks_from"]))
+    for title, blocks in sections:
+        if title:
+            print(title)
+        for name, b in blocks.items():
+            print(block_line(name, b))
+    print(target_line(out))
+    print_run_summary(out)
+    if "profile" in out:
+        print_profile(out["profile"])
+    return 0
+
+
+def add_consistency_args(p: argparse.ArgumentParser) -> None:
+    """The options of ``ngnav consistency`` (``python -m studies.consistency`` adds its own)."""
+    p.add_argument("--runs", type=int, default=50)
+    p.add_argument(
+        "--workers", type=int, default=2, help="dask worker processes (default: %(default)s)"
+    )
+    p.add_argument("--method", choices=["gm11", "none", "line", "last", "oracle"])
+    p.add_argument(
+        "--profile",
+        type=float,
+        metavar="S",
+        help="also print each NEES block's run average over windows of S seconds",
+    )
+    p.add_argument(
+        "--from",
+        dest="from_s",
+        type=float,
+        metavar="S",
+        help="also print every block's statistics over the epochs from S seconds on",
+    )
+    p.add_argument("--json", action="store_true")
+
+
+def add_parsers(sub) -> None:
+    """Register ``ngnav evaluate`` and ``ngnav consistency``."""
+    p = sub.add_parser(
+        "evaluate", help="errors of GM(1,1)/none/oracle/array-alone/GPS-alone on a simulated flight"
+    )
+    add_flight_args(p)
+    p.add_argument("--run-index", type=int, default=0)
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser(
+        "consistency", help="NEES/NIS over Monte Carlo runs against chi-square bounds"
+    )
+    add_flight_args(p)
+    add_consistency_args(p)
+    p.set_defaults(func=cmd_consistency)

@@ -1,0 +1,212 @@
+"""Runs as files: ``ngnav simulate``, ``ngnav convert`` and ``ngnav run``."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+import numpy as np
+
+from ngnav.cli import EXIT_DIVERGED, add_flight_args, flight_scenario
+
+
+def _print_counts(counts: dict[str, int], indent: str = "  ") -> None:
+    for k, v in counts.items():
+        print(f"{indent}{k}: {v}")
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from ngnav.conventions import G0_MPS2
+    from ngnav.runio import write_truth_csv
+    from ngnav.simulate import simulate_flight
+    from telemetry.runfiles import truth_path, write_run
+
+    if args.out is None and args.stream is None:
+        raise ValueError("say where the run goes: --out DIR|NAME.tlog and/or --stream udpout:...")
+    scn = flight_scenario(args)
+    sim = simulate_flight(scn, args.run_index)
+    where = []
+    if args.out is not None:
+        out = write_run(args.out, sim.samples, sim.fixes, sim.config)
+        write_truth_csv(truth_path(out), sim.truth)
+        where.append(str(out))
+    print(
+        f"simulated {scn.name} run {args.run_index}: {sim.samples.t_s.shape[0]} array samples "
+        f"({sim.samples.n_channels} channels), {len(sim.fixes)} GPS fixes, "
+        f"{int(sim.saturated.any(axis=1).sum())} saturated samples -> {', '.join(where) or '-'}",
+        flush=True,
+    )
+    e_pos = sim.unknown_position_error_mps2() / G0_MPS2 * 1e6
+    noise = float(np.median(sim.config.noise_sigma_mps2)) / G0_MPS2 * 1e6
+    print(
+        f"unknown sensor positions ({sim.config.position_sigma_m * 1e3:g} mm 1-sigma): channel "
+        f"error {np.sqrt(np.mean(e_pos**2)):.1f} ug rms, {np.abs(e_pos).max():.1f} ug at most, "
+        f"beside {noise:.0f} ug of noise per sample; filter position states "
+        f"{'on' if sim.config.filter.position_states and sim.config.position_sigma_m > 0 else 'off'}"
+    )
+    if args.stream is not None:
+        from telemetry.inputs import input_frames
+        from telemetry.live import parse_endpoint, play_frames
+        from telemetry.tlog import FrameWriter, frames_of
+
+        dest = parse_endpoint(args.stream, "udpout")
+        frames = frames_of(input_frames(sim.samples, sim.fixes, sim.config), FrameWriter())
+        n = play_frames(frames, dest, args.speed)
+        print(f"streamed {n} datagrams to {dest} at speed {args.speed:g}")
+    return 0
+
+
+def _print_reports(reports: dict[str, dict[str, int]]) -> None:
+    for src, counts in reports.items():
+        print(f"  {src}:")
+        _print_counts(counts, "    ")
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from filters.evaluate import run_errors, summarise
+    from filters.output import write_estimates_csv
+    from filters.pipeline import run_filter
+    from ngnav.api import pipeline_factory
+    from ngnav.cli.stream import run_to_tlog
+    from ngnav.errors import CovarianceError
+    from ngnav.runio import read_truth_csv
+    from telemetry.replay import replay_tlog
+    from telemetry.runfiles import is_tlog, read_run, truth_path
+
+    src = Path(args.run)
+    if args.out:
+        out = Path(args.out)
+    else:
+        out = src.with_suffix(".estimates.csv") if is_tlog(src) else src / "estimates.csv"
+    if args.no_gps and (is_tlog(src) or is_tlog(out)):
+        raise ValueError("--no-gps is for CSV runs; a tlog replay uses every input it holds")
+    if not src.exists():
+        raise ValueError(f"{src}: no such file or directory")
+    if not is_tlog(src) and not src.is_dir():
+        raise ValueError(f"{src} is not a run: give a directory (config.toml, array.csv, "
+                         "gps.csv) or a .tlog")
+    _check_writable(out)
+    failure = None
+    if is_tlog(out):
+        # estimates as MAVLink: through the stream path, as a live link would run
+        rr, reports = run_to_tlog(src, out, args)
+        res, cfg, failure = rr.result, rr.config, rr.failure
+        frames = sum(rr.frames_sent.values())
+        print(f"run {src}: {res.estimates.t_s.shape[0]} estimates, {frames} frames -> {out}")
+    elif is_tlog(src):
+        rr = replay_tlog(src, pipeline_factory(args.compensation))
+        if rr.result is None:
+            raise ValueError(f"{src}: the filter did not run: {rr.failure}")
+        res, cfg, failure = rr.result, rr.config, rr.failure
+        reports = {str(src): rr.counts}
+        write_estimates_csv(out, res.estimates, cfg)
+        print(f"run {src}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
+    else:
+        inp = read_run(src)
+        cfg, reports = inp.config, inp.reports
+        try:
+            res = run_filter(
+                inp.samples, inp.fixes, cfg, compensation=args.compensation, use_gps=not args.no_gps
+            )
+        except CovarianceError as exc:
+            if exc.partial is None:
+                raise
+            res, failure = exc.partial, str(exc)
+        write_estimates_csv(out, res.estimates, cfg)
+        print(f"run {src}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
+    _print_reports(reports)
+    _print_counts(res.counts)
+    if truth_path(src).exists():
+        s = summarise(run_errors(res.estimates, read_truth_csv(truth_path(src))))
+        print(
+            f"  against {truth_path(src).name}: horizontal RMS {s.horiz_rms_m:.3f} m, vertical "
+            f"{s.vert_rms_m:.3f} m, roll/pitch/yaw RMS {s.roll_rms_deg:.3f}/"
+            f"{s.pitch_rms_deg:.3f}/{s.yaw_rms_deg:.3f} deg"
+        )
+    if failure:
+        print(
+            f"ngnav run: the filter stopped: {failure}; the {res.estimates.t_s.shape[0]} "
+            f"estimates before it are in {out}. Check the run's configuration against its data "
+            "(sensor noise, initial attitude and heading, compensation).",
+            file=sys.stderr,
+        )
+        return EXIT_DIVERGED
+    return 0
+
+
+def _check_writable(out) -> None:
+    """Refuse an output path that cannot be written before any work is done (one line)."""
+    parent = out.parent if str(out.parent) else type(out)(".")
+    if out.is_dir():
+        raise ValueError(f"--out {out} is a directory; give a file NAME.csv or NAME.tlog")
+    if not parent.is_dir():
+        raise ValueError(f"--out {out}: the folder {parent} does not exist")
+    if not os.access(parent, os.W_OK) or (out.exists() and not os.access(out, os.W_OK)):
+        raise ValueError(f"--out {out}: not writable")
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    import shutil
+
+    from telemetry.runfiles import read_run, truth_path, write_run
+
+    inp = read_run(args.src)
+    out = write_run(args.dst, inp.samples, inp.fixes, inp.config)
+    if truth_path(args.src).exists():
+        shutil.copyfile(truth_path(args.src), truth_path(out))
+    print(
+        f"converted {args.src} -> {out}: {inp.samples.t_s.shape[0]} array samples, "
+        f"{len(inp.fixes)} GPS fixes"
+    )
+    _print_reports(inp.reports)
+    return 0
+
+
+def add_parsers(sub) -> None:
+    """Register ``ngnav simulate``, ``ngnav convert`` and ``ngnav run``."""
+    from ngnav.cli.stream import add_output_args
+
+    p = sub.add_parser(
+        "simulate", help="simulate a flight run (CSV + TOML directory, or a .tlog), with truth"
+    )
+    add_flight_args(p)
+    p.add_argument(
+        "--run-index", type=int, default=0, help="Monte Carlo index i of default_rng([seed, i])"
+    )
+    p.add_argument("--out", help="output directory, or a file NAME.tlog (MAVLink inputs)")
+    p.add_argument(
+        "--stream",
+        metavar="udpout:HOST:PORT",
+        help="also play the inputs as MAVLink over UDP (see --speed)",
+    )
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        help="run seconds per wall second for --stream; 0 = unpaced (default: 1, real time)",
+    )
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("convert", help="convert a run between a CSV directory and a .tlog")
+    p.add_argument("src", help="run directory or .tlog")
+    p.add_argument("dst", help="run directory or .tlog")
+    p.set_defaults(func=cmd_convert)
+
+    p = sub.add_parser(
+        "run", help="run the filter on a run directory (config.toml, array.csv, gps.csv) or tlog"
+    )
+    p.add_argument("run", help="directory with config.toml, array.csv, gps.csv; or a .tlog")
+    p.add_argument(
+        "--out",
+        help="estimates: NAME.csv, or NAME.tlog for MAVLink estimates "
+        "(default: RUN/estimates.csv, or NAME.estimates.csv)",
+    )
+    p.add_argument(
+        "--compensation", choices=["gm11", "none", "line", "last"], help="override the config"
+    )
+    p.add_argument("--no-gps", action="store_true", help="array alone after initialisation")
+    add_output_args(p)
+    p.set_defaults(func=cmd_run)

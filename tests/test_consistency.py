@@ -1,0 +1,54 @@
+"""``ngnav consistency`` (filters.consistency): the block statistics and the command's report."""
+
+import json
+
+import numpy as np
+import pytest
+
+from filters.consistency import summarise_block
+from tests.helpers import SHORT_TACTICAL_ARGS, run_cli, run_study
+
+
+def test_block_mean_carries_its_standard_error_over_runs():
+    """``mean_se`` counts each run once: four runs whose statistic is 1, 2, 3 and 4 at
+    every epoch (NaN epochs skipped) give std(1..4) / 2, however many epochs."""
+    per_run = [np.full(30, v) for v in (1.0, 2.0, 3.0, 4.0)]
+    per_run[2][:10] = np.nan
+    out, _ = summarise_block(per_run, 3, 4)
+    # the mean is over epochs of the run average: 7/3 where run 3 has no value
+    assert out["mean"] == pytest.approx((10 * 7 / 3 + 20 * 2.5) / 30)
+    assert out["mean_se"] == pytest.approx(np.std([1, 2, 3, 4], ddof=1) / 2, rel=1e-12)
+    assert np.isnan(summarise_block(per_run[:1], 3, 1)[0]["mean_se"])
+
+
+def test_cli_reports_the_blocks_the_study_reports_without_its_research():
+    """``ngnav consistency --runs 1 --from 10`` and ``python -m studies.consistency``
+    with the same options as real subprocesses: the same runs give the same blocks,
+    from 10 s too, verdict and attitude RMS, to the last digit; the command carries no
+    control, and its text report prints one line per block (twice: whole run and from
+    10 s), the verdict and no control row. The study's options are not the command's."""
+    args = ("consistency", *SHORT_TACTICAL_ARGS, "--workers", "1", "--runs", "1", "--from", "10")
+    user = json.loads(run_cli(*args, "--json").stdout)
+    study = json.loads(run_study(*args, "--json").stdout)
+    assert "control" not in user and "control_from" not in user
+    assert set(study) > set(user)
+    for key in user:
+        assert user[key] == study[key], key
+    text = run_cli(*args).stdout.splitlines()
+    assert not any("control" in line for line in text)
+    for name, b in user["blocks"].items():
+        rows = [line for line in text if line.startswith(f"  {name:14s} dim")]
+        assert len(rows) == 2, name
+        assert f"inside {100 * b['share_inside']:5.1f} % of epochs" in rows[0]
+        assert f"mean {b['mean']:7.2f}" in rows[0]
+    assert "  from 10 s on:" in text
+    assert sum(line.startswith("  target (") for line in text) == 1
+    for research in ("--reference", "--sets=2", "--tails=10", "--cycle=0.2"):
+        proc = run_cli(*args, research, check=False)
+        assert proc.returncode == 2 and "unrecognized arguments" in proc.stderr, research
+
+
+def test_cli_refuses_no_runs_in_one_line():
+    proc = run_cli("consistency", *SHORT_TACTICAL_ARGS, "--runs", "0", check=False)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == "ngnav consistency: error: runs must be at least 1, got 0"
