@@ -26,10 +26,9 @@ from filters.vehicle_model import (
     ZERO_LIFT_AOA_SIGMA_DEG,
 )
 from ngnav.conventions import G0_MPS2
-from ngnav.flight import quat_from_euler
 from ngnav.layout import rate_quadratics
 from ngnav.predictors import noise_gain
-from ngnav.rotation import dcm_from_quat
+from ngnav.rotation import dcm_from_quat, quat_from_euler
 
 
 def _static_tilt(f_b: np.ndarray) -> tuple[float, float]:

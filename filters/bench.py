@@ -27,10 +27,9 @@ from filterpy.kalman import update as kf_update
 
 from filters.pipeline import run_filter
 from ngnav.bench import _pin_one_core
-from ngnav.flight_scenario import FlightScenario
-from ngnav.gps import GpsFixes
-from ngnav.records import ArraySamples
-from ngnav.simulate import simulate_flight
+from ngnav.records import ArraySamples, GpsFixes
+from ngnav.sim.flight_scenario import FlightScenario
+from ngnav.sim.simulate import simulate_flight
 
 
 @dataclass(frozen=True)

@@ -16,9 +16,9 @@ from filters.evaluate import ErrorSummary, RunErrors, bound_summary, run_errors,
 from filters.gps_only import run_gps_only
 from filters.pipeline import run_filter
 from ngnav.errors import CovarianceError
-from ngnav.flight_scenario import FlightScenario
 from ngnav.records import RunResult
-from ngnav.simulate import SimulatedRun, simulate_flight
+from ngnav.sim.flight_scenario import FlightScenario
+from ngnav.sim.simulate import SimulatedRun, simulate_flight
 
 #: The configurations of ``ngnav evaluate``, in table order.
 CONFIGURATIONS: tuple[str, ...] = ("gm11", "none", "oracle", "array-alone", "gps-alone")

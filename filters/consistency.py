@@ -1,7 +1,7 @@
 """Monte Carlo consistency of the filter on a simulated scenario (``ngnav consistency``).
 
 ``consistency`` runs R Monte Carlo flights (``default_rng([seed, i])``, through
-:func:`ngnav.simulate.simulate_flight`) in parallel with dask and judges each
+:func:`ngnav.sim.simulate.simulate_flight`) in parallel with dask and judges each
 block's run-averaged NEES, and the NIS, against its two-sided 95 % chi-square
 bounds. Its parts are public for the research built on it
 (``python -m studies.consistency``): :func:`monte_carlo_runs` (with a hook that adds
@@ -25,8 +25,8 @@ from filters.evaluate import (
 )
 from filters.pipeline import run_filter
 from ngnav.errors import CovarianceError
-from ngnav.flight_scenario import FlightScenario
-from ngnav.simulate import SimulatedRun, simulate_flight
+from ngnav.sim.flight_scenario import FlightScenario
+from ngnav.sim.simulate import SimulatedRun, simulate_flight
 
 #: A hook adding entries to a run's record: ``(simulated run, run index) -> dict``. It
 #: must be picklable (a module-level function) to run in dask's worker processes.

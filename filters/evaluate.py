@@ -16,8 +16,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from filters.state import NEES_BLOCKS
-from ngnav.flight import FlightTruth
-from ngnav.records import Estimates
+from ngnav.records import Estimates, FlightTruth
 from ngnav.rotation import (
     dcm_from_quat,
     euler_from_quat,

@@ -12,7 +12,7 @@ from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 
 from ngnav.geodesy import LocalTangentPlane
-from ngnav.gps import GpsFixes
+from ngnav.records import GpsFixes
 
 
 def run_gps_only(

@@ -10,11 +10,11 @@ from filters.algebra import (
     body_velocity_reset_jacobian,
 )
 from filters.state import ATT, POS, RATE, VEL
-from ngnav.flight import quat_from_euler
 from ngnav.rotation import (
     cross_rows,
     dcm_from_quat,
     euler_from_quat,
+    quat_from_euler,
     quat_from_rotvec,
     quat_rotate_by_rotvec,
 )

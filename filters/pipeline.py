@@ -38,12 +38,18 @@ from filters.vehicle_model import (
 )
 from ngnav.compensation import _QUAD_I, _QUAD_J
 from ngnav.errors import CovarianceError
-from ngnav.flight import FlightTruth
 from ngnav.frontend import ArraySolver
 from ngnav.geodesy import LocalTangentPlane
-from ngnav.gps import GpsFixes
 from ngnav.layout import ArrayLayout
-from ngnav.records import ArraySamples, Estimates, GpsInnovations, NavEstimate, RunResult
+from ngnav.records import (
+    ArraySamples,
+    Estimates,
+    FlightTruth,
+    GpsFixes,
+    GpsInnovations,
+    NavEstimate,
+    RunResult,
+)
 from ngnav.rotation import euler_from_quat
 from ngnav.runconfig import RunConfig
 

@@ -26,12 +26,10 @@ from pathlib import Path
 from filters.evaluate import ErrorSummary, RunErrors, nees, run_errors, summarise
 from filters.pipeline import Pipeline, run_filter
 from ngnav.errors import CovarianceError, LostTrackError
-from ngnav.flight import FlightTruth
-from ngnav.flight_scenario import load_flight
-from ngnav.gps import GpsFixes
-from ngnav.records import ArraySamples, Estimates, NavEstimate, RunResult
+from ngnav.records import ArraySamples, Estimates, FlightTruth, GpsFixes, NavEstimate, RunResult
 from ngnav.runconfig import RunConfig
-from ngnav.simulate import SimulatedRun, simulate_flight
+from ngnav.sim.flight_scenario import load_flight
+from ngnav.sim.simulate import SimulatedRun, simulate_flight
 from telemetry.runfiles import RunInputs
 from telemetry.runfiles import read_run as _read_run
 from telemetry.runfiles import write_run as _write_run

@@ -19,10 +19,10 @@ import numpy as np
 from ngnav.compensation import compensate
 from ngnav.frontend import ArraySolver
 from ngnav.layout import nine_accelerometer_cube
-from ngnav.motion import fixed_axis_turn
 from ngnav.mounting import MountingErrors
 from ngnav.predictors import GreyPredictor, LastValuePredictor, LinePredictor
 from ngnav.records import ArraySamples
+from ngnav.sim.turntable import fixed_axis_turn
 
 
 @dataclass(frozen=True)

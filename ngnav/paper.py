@@ -34,12 +34,12 @@ from ngnav.compensation import compensate
 from ngnav.conventions import G0_MPS2
 from ngnav.frontend import ArraySolver
 from ngnav.layout import ArrayLayout, kinematic_features, layout_by_name
-from ngnav.motion import fixed_axis_turn
 from ngnav.mounting import MountingErrors
 from ngnav.predictors import GreyPredictor, LastValuePredictor, LinePredictor, OraclePredictor
 from ngnav.records import ArraySamples, FlightTruth
-from ngnav.scenario import TiltTableScenario
-from ngnav.sensors import AccelerometerModel, ChannelErrors
+from ngnav.sim.sensors import AccelerometerModel, ChannelErrors
+from ngnav.sim.tilt_table import TiltTableScenario
+from ngnav.sim.turntable import fixed_axis_turn
 from ngnav.strapdown import integrate_rate, rotation_angle_about
 
 #: Methods in the order they are reported.

@@ -6,7 +6,7 @@ without defensive copies downstream.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -353,3 +353,45 @@ class FlightTruth:
     def loop_state(self) -> np.ndarray:
         """True values (T, 9) of the compensation loop's channels (rate, rate dot, force)."""
         return np.hstack([self.omega_b_rps, self.omega_dot_b_rps2, self.f_b_mps2])
+
+
+@dataclass(frozen=True)
+class GpsFixes:
+    """A sequence of M GPS fixes (see the module docstring for meanings).
+
+    Attributes
+    ----------
+    t_s, lat_deg, lon_deg, alt_m, h_acc_m, v_acc_m, vel_acc_mps, latency_s : arrays (M,)
+    vel_ned_mps : array (M, 3)
+    """
+
+    t_s: np.ndarray
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    alt_m: np.ndarray
+    vel_ned_mps: np.ndarray
+    h_acc_m: np.ndarray
+    v_acc_m: np.ndarray
+    vel_acc_mps: np.ndarray
+    latency_s: np.ndarray
+
+    def __post_init__(self) -> None:
+        shapes = {k: () for k in ("t_s", "lat_deg", "lon_deg", "alt_m", "h_acc_m", "v_acc_m")}
+        shapes.update({"vel_ned_mps": (3,), "vel_acc_mps": (), "latency_s": ()})
+        freeze_fields(self, shapes)
+        m = self.t_s.shape[0]
+        for k in shapes:
+            if getattr(self, k).shape[0] != m:
+                raise ValueError(f"GpsFixes.{k} has {getattr(self, k).shape[0]} rows, t_s has {m}")
+        if m:
+            check_time_axis(self.t_s)
+
+    def __len__(self) -> int:
+        return int(self.t_s.shape[0])
+
+    def select(self, keep: np.ndarray) -> GpsFixes:
+        """The fixes where the boolean mask ``keep`` (M,) is true, in order."""
+        keep = np.asarray(keep, dtype=bool)
+        if keep.shape != self.t_s.shape:
+            raise ValueError(f"mask has shape {keep.shape}, expected {self.t_s.shape}")
+        return GpsFixes(**{f.name: getattr(self, f.name)[keep] for f in fields(self)})

@@ -201,3 +201,13 @@ def cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross product of (K, 3) arrays (``np.cross`` without its axis handling)."""
     # np.take on a small axis costs less than fancy indexing
     return a.take(_YZX, axis=1) * b.take(_ZXY, axis=1) - a.take(_ZXY, axis=1) * b.take(_YZX, axis=1)
+
+
+def quat_from_euler(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """``q_nb`` (..., 4) of ZYX Euler angles (rad): yaw about z, then pitch, then roll."""
+    r, p, y = (np.asarray(a, dtype=float) / 2 for a in (roll, pitch, yaw))
+    z = np.zeros_like(r + p + y)
+    qz = np.stack([np.cos(y) + z, z, z, np.sin(y) + z], -1)
+    qy = np.stack([np.cos(p) + z, z, np.sin(p) + z, z], -1)
+    qx = np.stack([np.cos(r) + z, np.sin(r) + z, z, z], -1)
+    return quat_multiply(quat_multiply(qz, qy), qx)

@@ -188,9 +188,9 @@ def _vector(table: dict, key: str, n: int, where: str, default: Any = None) -> n
 
 
 def _settings(cls: type, table: Any, where: str) -> Any:
-    from ngnav.scenario import _build
+    from ngnav.config import build_section
 
-    return _build(cls, table if table is not None else {}, where, "config.toml")
+    return build_section(cls, table if table is not None else {}, where, "config.toml")
 
 
 def read_run_config(path: str | Path) -> RunConfig:

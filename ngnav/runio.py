@@ -25,9 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ngnav.flight import FlightTruth
-from ngnav.gps import GpsFixes
-from ngnav.records import ArraySamples
+from ngnav.records import ArraySamples, FlightTruth, GpsFixes
 
 GPS_COLUMNS: tuple[str, ...] = (
     "t_s",

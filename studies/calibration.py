@@ -17,7 +17,7 @@ from ngnav.calibration import calibrate_multiposition, multiposition_directions
 from ngnav.layout import layout_by_name
 from ngnav.mounting import MountingErrors
 from ngnav.paper import eq27_calibrate, static_readings_mv
-from ngnav.scenario import TiltTableScenario
+from ngnav.sim.tilt_table import TiltTableScenario
 
 
 @dataclass(frozen=True)
@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _report(args) -> int:
-    from ngnav.scenario import load_tilt_table
+    from ngnav.sim.tilt_table import load_tilt_table
 
     scn = load_tilt_table(args.scenario, args.overrides)
     st = run_calibration_study(scn, args.runs)

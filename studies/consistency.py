@@ -38,7 +38,7 @@ from filters.consistency import (
     summarise_runs,
 )
 from filters.evaluate import TARGET_SHARE, chi2_bounds
-from ngnav.flight_scenario import FlightScenario
+from ngnav.sim.flight_scenario import FlightScenario
 from studies.control import control_extras
 from studies.share_reference import consistent_share
 

@@ -32,11 +32,10 @@ import numpy as np
 from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 
-from ngnav.flight import FlightTruth
 from ngnav.geodesy import LocalTangentPlane
-from ngnav.gps import GpsFixes, antenna_truth
-from ngnav.records import freeze_fields
-from ngnav.simulate import SimulatedRun
+from ngnav.records import FlightTruth, GpsFixes, freeze_fields
+from ngnav.sim.gps import antenna_truth
+from ngnav.sim.simulate import SimulatedRun
 
 
 @dataclass(frozen=True)

@@ -50,9 +50,9 @@ from filters.vehicle_model import (
     constraint_axes,
 )
 from ngnav.errors import CovarianceError
-from ngnav.flight import FlightTruth
-from ngnav.flight_scenario import FlightScenario
+from ngnav.records import FlightTruth
 from ngnav.rotation import dcm_from_quat, quat_conjugate, quat_multiply, quat_to_rotvec, skew
+from ngnav.sim.flight_scenario import FlightScenario
 
 #: Lag-1 correlations are clipped to this before ``(1 + rho) / (1 - rho)``: a
 #: remainder constant over a window would otherwise count infinitely often.
@@ -316,7 +316,7 @@ MODELS: dict[str, int] = {"lateral": LATERAL, "vertical": VERTICAL}
 
 
 def _one_run(scn: FlightScenario, i: int) -> dict[str, RealizedRemainders] | str:
-    from ngnav.simulate import simulate_flight
+    from ngnav.sim.simulate import simulate_flight
 
     sim = simulate_flight(scn, i)
     log: list[BodyVelocityRecord] = []
@@ -342,7 +342,7 @@ def remainder_study(
 ) -> dict:
     """Measure the vehicle model's remainders' size and persistence over ``runs`` flights.
 
-    Runs use ``default_rng([seed, i])`` (:func:`ngnav.simulate.simulate_flight`) and
+    Runs use ``default_rng([seed, i])`` (:func:`ngnav.sim.simulate.simulate_flight`) and
     execute with dask's process scheduler (``workers`` processes; 1: in this
     process). Returns the counts the filter used; under ``models``, for the lateral
     (sideslip) model and, when the scenario has it, the vertical (angle-of-attack)
@@ -424,7 +424,7 @@ def main(argv: list[str] | None = None) -> int:
 def _report(args) -> int:
     import json
 
-    from ngnav.flight_scenario import load_flight
+    from ngnav.sim.flight_scenario import load_flight
 
     out = remainder_study(
         load_flight(args.scenario, args.overrides),

@@ -31,8 +31,8 @@ import threading
 import time
 from dataclasses import dataclass
 
-from ngnav.flight_scenario import FlightScenario
-from ngnav.simulate import simulate_flight
+from ngnav.sim.flight_scenario import FlightScenario
+from ngnav.sim.simulate import simulate_flight
 from telemetry.frames import FrameDecoder
 from telemetry.inputs import input_frames
 from telemetry.live import Endpoint, _socket, free_udp_port, play_frames

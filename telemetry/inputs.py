@@ -34,8 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ngnav.gps import GpsFixes
-from ngnav.records import ArraySamples
+from ngnav.records import ArraySamples, GpsFixes
 from ngnav.runconfig import RunConfig, read_run_config_text, run_config_text
 from telemetry import ngnav_mavlink as mavlink
 from telemetry.frames import FrameCounts

@@ -11,8 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from ngnav.gps import GpsFixes
-from ngnav.records import ArraySamples
+from ngnav.records import ArraySamples, GpsFixes
 from ngnav.runconfig import RunConfig, read_run_config, write_run_config
 from ngnav.runio import read_array_csv, read_gps_csv, write_array_csv, write_gps_csv
 

@@ -1,7 +1,7 @@
 import numpy as np
 
 from ngnav.conventions import G0_MPS2
-from ngnav.motion import fixed_axis_turn, min_jerk_step
+from ngnav.motion import min_jerk_step
 from ngnav.rotation import (
     cross_rows,
     quat_from_rotvec,
@@ -11,6 +11,7 @@ from ngnav.rotation import (
     quat_rotate_by_rotvec,
     quat_to_rotvec,
 )
+from ngnav.sim.turntable import fixed_axis_turn
 from ngnav.strapdown import integrate_rate, rotation_angle_about
 
 

@@ -12,10 +12,10 @@ from filters.algebra import body_velocity_reset_jacobian
 from filters.state import ATT, VEL
 from filters.vehicle_model import LATERAL, VERTICAL, constraint_axes
 from ngnav.conventions import gravity_n_mps2
-from ngnav.flight import quat_from_euler
 from ngnav.rotation import (
     dcm_from_quat,
     quat_conjugate,
+    quat_from_euler,
     quat_from_rotvec,
     quat_multiply,
     quat_to_rotvec,
@@ -193,8 +193,8 @@ def test_setting_reaches_the_filter_and_keeps_its_covariance_positive():
     builds; a 3 s hand-over and turn on it keeps P positive definite (the pipeline's
     checks) and reads the same first GPS fix."""
     from filters.pipeline import run_filter
-    from ngnav.flight_scenario import load_flight
-    from ngnav.simulate import simulate_flight
+    from ngnav.sim.flight_scenario import load_flight
+    from ngnav.sim.simulate import simulate_flight
 
     scn = load_flight(
         "tactical",

@@ -4,10 +4,10 @@ import pytest
 from ngnav.compensation import compensate
 from ngnav.frontend import ArraySolver
 from ngnav.layout import nine_accelerometer_cube
-from ngnav.motion import fixed_axis_turn
 from ngnav.mounting import MountingErrors
 from ngnav.predictors import GreyPredictor, LastValuePredictor, OraclePredictor
 from ngnav.records import ArraySamples
+from ngnav.sim.turntable import fixed_axis_turn
 
 SHIFT = np.repeat([2.1, 245.0, 24.5], 3)
 

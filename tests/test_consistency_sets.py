@@ -57,7 +57,7 @@ def test_each_set_is_judged_on_its_own_runs_and_bounds():
 
 
 def test_sets_must_be_positive():
-    from ngnav.flight_scenario import load_flight
+    from ngnav.sim.flight_scenario import load_flight
 
     with pytest.raises(ValueError, match="sets must be at least 1"):
         consistency_study(load_flight("tactical"), runs=1, sets=0)

@@ -5,7 +5,8 @@ import pytest
 from scipy.stats import chi2
 
 from ngnav.geodesy import LocalTangentPlane
-from ngnav.gps import GpsFixes, GpsReceiverModel
+from ngnav.records import GpsFixes
+from ngnav.sim.gps import GpsReceiverModel
 from studies.control import fix_noise, perfect_array_control, process_noise_control
 
 
@@ -106,8 +107,8 @@ def test_fix_noise_recovers_the_receivers_draws():
     """A receiver's fixes along a truth, back through :func:`fix_noise`: the errors are
     exactly the receiver's normal draws times its accuracies (the same seed replayed),
     to the geodetic round trip (1e-6 m)."""
-    from ngnav.flight_scenario import load_flight
-    from ngnav.simulate import simulate_flight
+    from ngnav.sim.flight_scenario import load_flight
+    from ngnav.sim.simulate import simulate_flight
 
     sim = simulate_flight(load_flight("tactical", ["run.rate_hz=200"]), 0)
     ltp = LocalTangentPlane(34.0, -106.5, 1500.0)

@@ -23,7 +23,6 @@ from filters.vehicle_model import (
     remainder_variance,
 )
 from ngnav.conventions import gravity_n_mps2
-from ngnav.flight import quat_from_euler
 from ngnav.frontend import ArraySolver
 from ngnav.layout import ArrayLayout, kinematic_features, nine_accelerometer_cube
 from ngnav.motion import min_jerk_step
@@ -33,6 +32,7 @@ from ngnav.rotation import (
     dcm_from_quat,
     euler_from_quat,
     quat_conjugate,
+    quat_from_euler,
     quat_from_rotvec,
     quat_multiply,
     quat_normalize,
@@ -962,9 +962,9 @@ def test_vehicle_kind_decides_the_models_and_a_fixed_wing_updates_at_5_hz():
     state; a fixed-wing gets the sideslip and angle-of-attack updates at 5 Hz, both axes
     at every update time, through the hand-over's hold and after it."""
     from filters.pipeline import run_filter
-    from ngnav.flight_scenario import load_flight
     from ngnav.settings import VehicleSettings
-    from ngnav.simulate import simulate_flight
+    from ngnav.sim.flight_scenario import load_flight
+    from ngnav.sim.simulate import simulate_flight
 
     assert VehicleSettings().kind == "free"
     with pytest.raises(ValueError, match=r"vehicle\.lift_k_m describes a fixed-wing"):

@@ -20,11 +20,11 @@ from filters.ekf import FilterNoise, NavFilter
 from filters.evaluate import chi2_bounds, run_errors, summarise, truth_aoa_rad, truth_indices
 from filters.pipeline import run_filter
 from ngnav.errors import CovarianceError
-from ngnav.flight_scenario import load_flight
 from ngnav.records import ArraySamples
 from ngnav.runconfig import read_run_config, write_run_config
 from ngnav.runio import read_array_csv, read_gps_csv, write_array_csv, write_gps_csv
-from ngnav.simulate import simulate_flight
+from ngnav.sim.flight_scenario import load_flight
+from ngnav.sim.simulate import simulate_flight
 from tests.helpers import initialise_level
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -380,7 +380,7 @@ def test_airframe_draws_have_the_stated_scatter():
     inside the two-sided 99.9 % chi-square bounds of the stated sigmas."""
     from scipy.stats import chi2
 
-    from ngnav.flight import LiftLaw
+    from ngnav.sim.flight import LiftLaw
 
     law = LiftLaw(-0.02, 18.0, 40.0)
     rng = np.random.default_rng(5)

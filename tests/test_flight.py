@@ -8,11 +8,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ngnav.conventions import G0_MPS2
-from ngnav.flight import FlightPlan, LiftLaw, Profile, Transition, fly, quat_from_euler
-from ngnav.flight_scenario import load_flight
 from ngnav.geodesy import LocalTangentPlane, ecef_to_geodetic, geodetic_to_ecef
-from ngnav.rotation import dcm_from_quat, euler_from_quat, quat_conjugate, quat_multiply
-from ngnav.sensors import PRESET_NAMES, sensor_preset
+from ngnav.rotation import (
+    dcm_from_quat,
+    euler_from_quat,
+    quat_conjugate,
+    quat_from_euler,
+    quat_multiply,
+)
+from ngnav.sim.flight import FlightPlan, LiftLaw, Profile, Transition, fly
+from ngnav.sim.flight_scenario import load_flight
+from ngnav.sim.sensors import PRESET_NAMES, sensor_preset
 
 
 def _turning_plan() -> FlightPlan:
@@ -243,8 +249,8 @@ def test_a_turntable_truth_is_a_whole_body_truth():
     position and velocity circle the fixed pivot, and differentiate into each other
     and into the specific force plus gravity, as any body's must."""
     from ngnav.conventions import gravity_n_mps2
-    from ngnav.motion import fixed_axis_turn
     from ngnav.rotation import dcm_from_quat
+    from ngnav.sim.turntable import fixed_axis_turn
 
     pivot = np.array([0.03, -0.05, 0.02])
     tr = fixed_axis_turn(

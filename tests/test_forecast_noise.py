@@ -8,11 +8,11 @@ from scipy.stats import chi2
 
 from filters.pipeline import Pipeline, _feed
 from filters.state import RATE, VEL
-from ngnav.flight_scenario import load_flight
 from ngnav.predictors import GreyPredictor, LastValuePredictor, LinePredictor, noise_gain
 from ngnav.rotation import dcm_from_quat, quat_from_rotvec
 from ngnav.settings import CompensationSettings
-from ngnav.simulate import simulate_flight
+from ngnav.sim.flight_scenario import load_flight
+from ngnav.sim.simulate import simulate_flight
 from tests.helpers import level_filter
 
 

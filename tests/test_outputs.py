@@ -27,7 +27,7 @@ def _state(q: np.ndarray, v: np.ndarray, dx: np.ndarray) -> np.ndarray:
 )
 def test_odometry_covariances_are_the_first_order_map_of_the_error_state(rpy, v):
     # the exact reference: a numerical Jacobian of the state the error describes
-    from ngnav.flight import quat_from_euler
+    from ngnav.rotation import quat_from_euler
 
     q = quat_from_euler(*rpy)
     vel = np.array(v)
@@ -74,8 +74,8 @@ def test_output_settings_refuse_what_ground_stations_ignore():
 
 @pytest.fixture(scope="module")
 def tactical_run():
-    from ngnav.flight_scenario import load_flight
-    from ngnav.simulate import simulate_flight
+    from ngnav.sim.flight_scenario import load_flight
+    from ngnav.sim.simulate import simulate_flight
 
     scn = load_flight("tactical", ["run.rate_hz=200"])
     return simulate_flight(scn, 0)

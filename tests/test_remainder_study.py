@@ -16,11 +16,11 @@ from filters.vehicle_model import (
     VERTICAL,
     remainder_variance,
 )
-from ngnav.flight import FlightTruth
-from ngnav.flight_scenario import load_flight
+from ngnav.records import FlightTruth
 from ngnav.rotation import dcm_from_quat, quat_from_rotvec, quat_multiply
 from ngnav.settings import VehicleSettings
-from ngnav.simulate import simulate_flight
+from ngnav.sim.flight_scenario import load_flight
+from ngnav.sim.simulate import simulate_flight
 from studies.remainder import (
     RHO_MAX,
     RealizedRemainders,

@@ -9,8 +9,8 @@ from filters.evaluate import nees, run_errors
 from filters.pipeline import Pipeline, _feed, run_filter
 from filters.rest import CONFIRM_S, FIX_MAX_AGE_S, RestDetector
 from filters.state import ATT, RATE, VEL
-from ngnav.flight_scenario import load_flight
-from ngnav.simulate import simulate_flight
+from ngnav.sim.flight_scenario import load_flight
+from ngnav.sim.simulate import simulate_flight
 from tests.helpers import level_filter
 
 BLOCK_S = 0.01

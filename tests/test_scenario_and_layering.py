@@ -5,15 +5,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ngnav.config import shipped_scenarios
 from ngnav.paper import load_paper_table
-from ngnav.scenario import load_tilt_table, shipped_scenarios
+from ngnav.sim.tilt_table import load_tilt_table
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_every_scenario_parameter_has_a_reason():
     for name in shipped_scenarios():
-        lines = (ROOT / "ngnav" / "scenarios" / f"{name}.toml").read_text().splitlines()
+        lines = (ROOT / "ngnav" / "sim" / "scenarios" / f"{name}.toml").read_text().splitlines()
         for i, line in enumerate(lines):
             if re.match(r"^[a-z_]+\s*=", line):
                 assert lines[i - 1].startswith("# "), (
@@ -124,9 +125,9 @@ rest_rate_sigma_dps = 0.0
 def test_a_run_written_before_the_settings_were_grouped_still_reads(tmp_path):
     """The old flat ``[filter]`` maps onto today's groups with the same meaning; a value
     that is no longer settable must be the one now fixed, and is refused otherwise."""
-    from ngnav.flight_scenario import load_flight
     from ngnav.runconfig import read_run_config_text, run_config_text
-    from ngnav.simulate import simulate_flight
+    from ngnav.sim.flight_scenario import load_flight
+    from ngnav.sim.simulate import simulate_flight
 
     cfg = simulate_flight(load_flight("tactical"), 0).config
     text = run_config_text(cfg)
@@ -155,7 +156,7 @@ def test_a_run_written_before_the_settings_were_grouped_still_reads(tmp_path):
     ],
 )
 def test_an_override_of_an_old_key_says_what_became_of_it(override, says):
-    from ngnav.flight_scenario import load_flight
+    from ngnav.sim.flight_scenario import load_flight
 
     with pytest.raises(ValueError, match=re.escape(says)):
         load_flight("tactical", [override])

@@ -10,8 +10,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from ngnav.flight_scenario import load_flight
-from ngnav.simulate import simulate_flight
+from ngnav.sim.flight_scenario import load_flight
+from ngnav.sim.simulate import simulate_flight
 from telemetry import ngnav_mavlink as mavlink
 from telemetry.frames import FrameDecoder
 from telemetry.generate import DIALECT_XML, GENERATED, generate

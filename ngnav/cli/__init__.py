@@ -55,7 +55,7 @@ def add_flight_args(p: argparse.ArgumentParser, default: str = "uav-survey") -> 
 
 def flight_scenario(args: argparse.Namespace):
     """The flight scenario of :func:`add_flight_args`'s options (ValueError if not a flight)."""
-    from ngnav.flight_scenario import is_flight_scenario, load_flight
+    from ngnav.sim.flight_scenario import is_flight_scenario, load_flight
 
     if not is_flight_scenario(args.scenario):
         raise ValueError(f"scenario {args.scenario!r} is not a flight (it has no [flight] section)")

@@ -19,7 +19,7 @@ def _print_counts(counts: dict[str, int], indent: str = "  ") -> None:
 def cmd_simulate(args: argparse.Namespace) -> int:
     from ngnav.conventions import G0_MPS2
     from ngnav.runio import write_truth_csv
-    from ngnav.simulate import simulate_flight
+    from ngnav.sim.simulate import simulate_flight
     from telemetry.runfiles import truth_path, write_run
 
     if args.out is None and args.stream is None:

@@ -28,7 +28,7 @@ def _progress(enabled: bool):
 
 def cmd_paper(args: argparse.Namespace) -> int:
     from ngnav.paper import METHODS, run_paper
-    from ngnav.scenario import load_tilt_table
+    from ngnav.sim.tilt_table import load_tilt_table
 
     scn = load_tilt_table(args.scenario, args.overrides)
     methods = tuple(args.methods.split(",")) if args.methods else METHODS

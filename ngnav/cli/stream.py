@@ -166,7 +166,7 @@ def run_to_tlog(src: Path, out: Path, args: argparse.Namespace):
 
 def cmd_bench_stream(args: argparse.Namespace) -> int:
     """``ngnav bench-stream``: the live link under load (see :mod:`telemetry.bench`)."""
-    from ngnav.flight_scenario import load_flight
+    from ngnav.sim.flight_scenario import load_flight
     from telemetry.bench import run_stream_bench
 
     overrides = list(args.overrides)

@@ -10,7 +10,7 @@ end of the leg; a key a leg leaves out keeps its previous value.
 t = 0 (both 0 by default: at rest, body along the velocity). Instead of
 scheduling the angle of attack, ``[flight] lift = { alpha0_deg, k_m,
 liftoff_speed_mps }`` makes it the one the lift law asks for
-(:class:`ngnav.flight.LiftLaw`): the aircraft type's law. ``[flight] lift_scatter
+(:class:`ngnav.sim.flight.LiftLaw`): the aircraft type's law. ``[flight] lift_scatter
 = { alpha0_deg, k_m }`` gives how one aircraft of the type differs from it (1-sigma);
 each simulated run then flies its own, drawn from its run's generator.
 """
@@ -23,9 +23,13 @@ from typing import Any
 
 import numpy as np
 
-from ngnav.flight import FlightPlan, LiftLaw, Profile, Transition
-from ngnav.scenario import _build, apply_overrides, read_scenario_data
-from ngnav.sensors import PRESET_NAMES, AccelerometerSpec, sensor_preset
+from ngnav.config import (
+    ArraySection,
+    RunSection,
+    apply_overrides,
+    build_section,
+    read_scenario_data,
+)
 from ngnav.settings import (
     CompensationSettings,
     FilterSettings,
@@ -33,18 +37,8 @@ from ngnav.settings import (
     VehicleSettings,
     migrate_legacy,
 )
-
-
-@dataclass(frozen=True)
-class FlightRunConfig:
-    seed: int
-    rate_hz: float
-
-
-@dataclass(frozen=True)
-class FlightArrayConfig:
-    layout: str = "nine-cube"
-    lever_arm_m: float = 0.1
+from ngnav.sim.flight import FlightPlan, LiftLaw, Profile, Transition
+from ngnav.sim.sensors import PRESET_NAMES, AccelerometerSpec, sensor_preset
 
 
 @dataclass(frozen=True)
@@ -133,8 +127,8 @@ class FlightScenario:
     """A whole flight scenario (see the module docstring)."""
 
     name: str
-    run: FlightRunConfig
-    array: FlightArrayConfig
+    run: RunSection
+    array: ArraySection
     sensor: SensorChoice
     mounting: FlightMountingConfig
     gps: GpsConfig
@@ -193,8 +187,8 @@ class FlightScenario:
 
 
 _SECTIONS = {
-    "run": FlightRunConfig,
-    "array": FlightArrayConfig,
+    "run": RunSection,
+    "array": ArraySection,
     "sensor": SensorChoice,
     "mounting": FlightMountingConfig,
     "gps": GpsConfig,
@@ -215,7 +209,7 @@ def _legs(value: Any, source: str) -> tuple[Leg, ...]:
         raise ValueError(f"{source}: flight.legs must be a non-empty list of tables")
     legs = []
     for i, item in enumerate(value):
-        leg = _build(Leg, item, f"flight.legs[{i}]", source)
+        leg = build_section(Leg, item, f"flight.legs[{i}]", source)
         if leg.duration_s <= 0 or not 0 < leg.ramp_s <= leg.duration_s:
             raise ValueError(
                 f"{source}: flight.legs[{i}] needs duration_s > 0 and 0 < ramp_s <= duration_s"
@@ -239,9 +233,9 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
     for section, cls in _SECTIONS.items():
         if section not in data:
             raise ValueError(f"{source}: missing section [{section}]")
-        parts[section] = _build(cls, data[section], section, source)
+        parts[section] = build_section(cls, data[section], section, source)
     for section, cls in _OPTIONAL_SECTIONS.items():
-        parts[section] = _build(cls, data[section], section, source)
+        parts[section] = build_section(cls, data[section], section, source)
     flight = data.get("flight")
     if not isinstance(flight, dict) or "legs" not in flight:
         raise ValueError(f"{source}: missing [flight] with legs")

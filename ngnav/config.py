@@ -1,8 +1,9 @@
-"""Typed scenario records read from TOML, with errors that name file and key.
+"""The one TOML loader: typed records from scenario and run files, errors that name file and key.
 
-Scenarios ship in ``ngnav/scenarios/*.toml``; :func:`load_scenario` takes a
-shipped name (``tilt-table``) or a path. Overrides (``section.key=value``, as
-the CLI's ``--set``) are applied before validation.
+Scenarios ship in ``ngnav/sim/scenarios/*.toml``; :func:`read_scenario_data` takes a
+shipped name (``tilt-table``) or a path. Overrides (``section.key=value``, as the
+CLI's ``--set``) are applied before validation; :func:`build_section` turns a table
+into its record, naming an unknown key's nearest known one.
 """
 
 from __future__ import annotations
@@ -16,95 +17,21 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, get_type_hints
 
-from ngnav.sensors import AccelerometerModel
-
 
 @dataclass(frozen=True)
-class RunConfig:
+class RunSection:
+    """``[run]`` of a scenario: the Monte Carlo seed and the array's sample rate, Hz."""
+
     seed: int
     rate_hz: float
 
 
 @dataclass(frozen=True)
-class ArrayConfig:
-    layout: str
-    lever_arm_m: float
+class ArraySection:
+    """``[array]`` of a scenario: the nominal layout's name and its lever arm, m."""
 
-
-@dataclass(frozen=True)
-class MountingConfig:
-    outward_offset_m: float
-    position_scatter_m: float
-    axis_error_deg: float
-
-
-@dataclass(frozen=True)
-class CalibrationConfig:
-    samples_per_position: int
-    method: str
-
-
-@dataclass(frozen=True)
-class TestConfig:
-    plane: str
-    rest_before_s: float
-    turn_duration_s: float
-    rest_after_s: float
-    pivot_b_m: tuple[float, float, float]
-
-
-@dataclass(frozen=True)
-class CompensationConfig:
-    window: int
-    grey_shift: str
-    rate_range_dps: float
-
-
-@dataclass(frozen=True)
-class TiltTableScenario:
-    """The paper's indexing-head experiment (see ``scenarios/tilt-table.toml``)."""
-
-    name: str
-    run: RunConfig
-    array: ArrayConfig
-    sensor: AccelerometerModel
-    mounting: MountingConfig
-    calibration: CalibrationConfig
-    test: TestConfig
-    compensation: CompensationConfig
-
-    def __post_init__(self) -> None:
-        where = f"scenario {self.name!r}"
-        if self.test.plane not in ("horizontal", "vertical"):
-            raise ValueError(f"{where}: test.plane must be 'horizontal' or 'vertical'")
-        if self.calibration.method not in ("multiposition", "eq27"):
-            raise ValueError(f"{where}: calibration.method must be 'multiposition' or 'eq27'")
-        if self.compensation.grey_shift not in ("range", "auto"):
-            raise ValueError(f"{where}: compensation.grey_shift must be 'range' or 'auto'")
-        if self.compensation.rate_range_dps <= 0:
-            raise ValueError(f"{where}: compensation.rate_range_dps must be positive")
-        if self.compensation.window < 4:
-            raise ValueError(f"{where}: compensation.window must be >= 4 (GM(1,1))")
-        if self.calibration.samples_per_position < 1:
-            raise ValueError(f"{where}: calibration.samples_per_position must be >= 1")
-        for key in ("rest_before_s", "turn_duration_s", "rest_after_s"):
-            if getattr(self.test, key) < 0 or (
-                key == "turn_duration_s" and self.test.turn_duration_s == 0
-            ):
-                raise ValueError(f"{where}: test.{key} must be positive")
-        if self.test.rest_before_s * self.run.rate_hz < 1:
-            raise ValueError(f"{where}: test.rest_before_s must hold at least one sample")
-
-
-_SECTIONS = {
-    "run": RunConfig,
-    "array": ArrayConfig,
-    "sensor": AccelerometerModel,
-    "mounting": MountingConfig,
-    "calibration": CalibrationConfig,
-    "test": TestConfig,
-    "compensation": CompensationConfig,
-}
+    layout: str = "nine-cube"
+    lever_arm_m: float = 0.1
 
 
 def _coerce(value: Any, kind: Any, where: str) -> Any:
@@ -142,7 +69,7 @@ def unknown_name(what: str, name: str, known: Iterable[str]) -> str:
     return f"unknown {what} {name}" + (f" (did you mean {near[0]}?)" if near else "")
 
 
-def _build(cls: type, table: Any, section: str, source: str) -> Any:
+def build_section(cls: type, table: Any, section: str, source: str) -> Any:
     if not isinstance(table, dict):
         raise ValueError(f"{source}: [{section}] must be a table")
     hints = get_type_hints(cls)
@@ -196,7 +123,7 @@ def apply_overrides(data: dict, overrides: list[str], source: str) -> dict:
 
 def shipped_scenarios() -> list[str]:
     """Names of the scenarios shipped with the package."""
-    root = resources.files("ngnav") / "scenarios"
+    root = resources.files("ngnav.sim") / "scenarios"
     return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
 
 
@@ -208,7 +135,7 @@ def read_scenario_data(name_or_path: str) -> tuple[dict, str]:
             raise ValueError(f"scenario file {path} does not exist")
         text, source = path.read_text(encoding="utf-8"), str(path)
     else:
-        res = resources.files("ngnav") / "scenarios" / f"{name_or_path}.toml"
+        res = resources.files("ngnav.sim") / "scenarios" / f"{name_or_path}.toml"
         if not res.is_file():
             raise ValueError(
                 f"unknown scenario {name_or_path!r}; shipped: {', '.join(shipped_scenarios())}"
@@ -218,20 +145,3 @@ def read_scenario_data(name_or_path: str) -> tuple[dict, str]:
         return tomllib.loads(text), source
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{source}: not valid TOML: {exc}") from None
-
-
-def load_tilt_table(
-    name_or_path: str = "tilt-table", overrides: list[str] | None = None
-) -> TiltTableScenario:
-    """Load the indexing-head scenario, applying ``section.key=value`` overrides."""
-    data, source = read_scenario_data(name_or_path)
-    data = apply_overrides(data, overrides or [], source)
-    unknown = sorted(set(data) - set(_SECTIONS))
-    if unknown:
-        raise ValueError(f"{source}: unknown section [{unknown[0]}]")
-    parts = {}
-    for section, cls in _SECTIONS.items():
-        if section not in data:
-            raise ValueError(f"{source}: missing section [{section}]")
-        parts[section] = _build(cls, data[section], section, source)
-    return TiltTableScenario(name=source, **parts)

@@ -1,4 +1,6 @@
-"""GPS fixes: the record the filter reads, and a receiver model for simulated runs.
+"""A GPS receiver model for simulated runs, and the antenna's truth.
+
+The fix record itself is :class:`ngnav.records.GpsFixes`.
 
 A fix carries WGS-84 latitude/longitude/ellipsoidal altitude of the antenna,
 its NED velocity, and the receiver's accuracy figures, read here as 1-sigma:
@@ -9,56 +11,13 @@ velocity axis. ``t_s`` is the time of validity on the array's clock;
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
-from ngnav.flight import FlightTruth
 from ngnav.geodesy import LocalTangentPlane
-from ngnav.records import check_time_axis, freeze_fields
+from ngnav.records import FlightTruth, GpsFixes
 from ngnav.rotation import dcm_from_quat
-
-
-@dataclass(frozen=True)
-class GpsFixes:
-    """A sequence of M GPS fixes (see the module docstring for meanings).
-
-    Attributes
-    ----------
-    t_s, lat_deg, lon_deg, alt_m, h_acc_m, v_acc_m, vel_acc_mps, latency_s : arrays (M,)
-    vel_ned_mps : array (M, 3)
-    """
-
-    t_s: np.ndarray
-    lat_deg: np.ndarray
-    lon_deg: np.ndarray
-    alt_m: np.ndarray
-    vel_ned_mps: np.ndarray
-    h_acc_m: np.ndarray
-    v_acc_m: np.ndarray
-    vel_acc_mps: np.ndarray
-    latency_s: np.ndarray
-
-    def __post_init__(self) -> None:
-        shapes = {k: () for k in ("t_s", "lat_deg", "lon_deg", "alt_m", "h_acc_m", "v_acc_m")}
-        shapes.update({"vel_ned_mps": (3,), "vel_acc_mps": (), "latency_s": ()})
-        freeze_fields(self, shapes)
-        m = self.t_s.shape[0]
-        for k in shapes:
-            if getattr(self, k).shape[0] != m:
-                raise ValueError(f"GpsFixes.{k} has {getattr(self, k).shape[0]} rows, t_s has {m}")
-        if m:
-            check_time_axis(self.t_s)
-
-    def __len__(self) -> int:
-        return int(self.t_s.shape[0])
-
-    def select(self, keep: np.ndarray) -> GpsFixes:
-        """The fixes where the boolean mask ``keep`` (M,) is true, in order."""
-        keep = np.asarray(keep, dtype=bool)
-        if keep.shape != self.t_s.shape:
-            raise ValueError(f"mask has shape {keep.shape}, expected {self.t_s.shape}")
-        return GpsFixes(**{f.name: getattr(self, f.name)[keep] for f in fields(self)})
 
 
 def antenna_truth(

@@ -46,7 +46,7 @@ import numpy as np
 from ngnav.conventions import G0_MPS2, gravity_n_mps2
 from ngnav.motion import min_jerk_step
 from ngnav.records import FlightTruth
-from ngnav.rotation import dcm_from_quat, quat_multiply
+from ngnav.rotation import dcm_from_quat, quat_from_euler, quat_multiply
 
 
 @dataclass(frozen=True)
@@ -312,16 +312,6 @@ class FlightPlan:
         coord = G0_MPS2 * tan / vs
         dcoord = np.where(v > 0.25 * vt, G0_MPS2 * (sec2 * dphi * vs - tan * dv) / vs**2, 0.0)
         return blend * coord + r, dblend * coord + blend * dcoord + dr
-
-
-def quat_from_euler(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """``q_nb`` (..., 4) of ZYX Euler angles (rad): yaw about z, then pitch, then roll."""
-    r, p, y = (np.asarray(a, dtype=float) / 2 for a in (roll, pitch, yaw))
-    z = np.zeros_like(r + p + y)
-    qz = np.stack([np.cos(y) + z, z, z, np.sin(y) + z], -1)
-    qy = np.stack([np.cos(p) + z, z, np.sin(p) + z, z], -1)
-    qx = np.stack([np.cos(r) + z, np.sin(r) + z, z, z], -1)
-    return quat_multiply(quat_multiply(qz, qy), qx)
 
 
 def euler_rates_to_body(

@@ -17,17 +17,17 @@ import numpy as np
 
 from ngnav.calibration import calibrate_multiposition, multiposition_directions
 from ngnav.conventions import G0_MPS2
-from ngnav.flight import FlightTruth, fly
-from ngnav.flight_scenario import FlightScenario
 from ngnav.geodesy import LocalTangentPlane
-from ngnav.gps import GpsFixes, GpsReceiverModel
 from ngnav.layout import ArrayLayout, layout_by_name
 from ngnav.mounting import MountingErrors
 from ngnav.paper import draw_mounting_errors
-from ngnav.records import ArraySamples
+from ngnav.records import ArraySamples, FlightTruth, GpsFixes
 from ngnav.rotation import euler_from_quat
 from ngnav.runconfig import InitialSettings, RunConfig
-from ngnav.sensors import AccelerometerSpec
+from ngnav.sim.flight import fly
+from ngnav.sim.flight_scenario import FlightScenario
+from ngnav.sim.gps import GpsReceiverModel
+from ngnav.sim.sensors import AccelerometerSpec
 
 
 @dataclass(frozen=True)
