@@ -8,6 +8,7 @@ import numpy as np
 
 from filters.ekf import NavFilter
 from filters.forecast import (
+    FORECAST_ERROR_PERSISTENCE,
     GM_WINDOW,
     RATE_RANGE_RPS,
     WDOT_SMOOTHING_S,
@@ -250,7 +251,8 @@ class AlignmentMixin:
         # the forecast's error (see _forecast_noise): its noise floor, the block means'
         # own noise plus what the forecast carries of the history's
         comp = cfg.compensation
-        self._fe_persistence = comp.forecast_error_persistence if se is not None else 0.0
+        persistence = FORECAST_ERROR_PERSISTENCE[bool(comp.forecast_correction)]
+        self._fe_persistence = persistence if se is not None else 0.0
         self._fe_correct = bool(comp.forecast_correction) and se is not None
         self._fe_d2 = np.zeros(6)
         #: The noise in :attr:`last_forecast_error` of a block of one sample, (6,):

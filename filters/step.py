@@ -261,7 +261,7 @@ class StepMixin:
         :data:`FORECAST_ERROR_GATE` times its floor), and the compensation leaves
         ``E_6 Delta`` of it in the features (``E_6`` the compensation matrix's
         ``[wdot, f]`` block): the filter adds that covariance times
-        ``filter.forecast_error_persistence`` over the block
+        ``filters.forecast.FORECAST_ERROR_PERSISTENCE`` over the block
         (:meth:`filters.ekf.NavFilter.add_forecast_noise`). The noise part of the
         forecast's error is already in the feature noise (:func:`filter_noise`).
         """

@@ -27,7 +27,7 @@ truth to separate files.
                    yaw_deg, tilt_sigma_deg, heading_source = "config"|"gps",
                    heading_sigma_deg, rate_dps = [x, y, z], rate_sigma_dps
     [filter]       rate_hz, fusion_lag_s, position_states
-    [compensation] method, forecast_error_persistence, forecast_correction
+    [compensation] method, forecast_correction
     [vehicle]      kind = "free"|"fixed-wing", lift_k_m, lift_k_sigma_m, liftoff_speed_mps,
                    aoa_walk_deg_rts, body_velocity_error, remainder_updates,
                    attitude_remainder_updates, coast_remainder_updates

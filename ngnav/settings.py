@@ -65,16 +65,14 @@ class CompensationSettings:
     method : str
         ``gm11`` (default; the paper's grey forecast), ``line``, ``last``, ``none``,
         or ``oracle`` (the true geometry; simulations only).
-    forecast_error_persistence : float
-        Blocks' worth of the forecast's measured error variance one block counts in
-        the rate and velocity noise (>= 0, default 2; 0 leaves it out).
     forecast_correction : bool
         Take the forecast's measured error out of the nominal state after each block
-        (default false).
+        (default false). What it leaves of that error is counted in the rate and
+        velocity noise as one block's worth with the correction, two without
+        (``filters.forecast.FORECAST_ERROR_PERSISTENCE``).
     """
 
     method: str = "gm11"
-    forecast_error_persistence: float = 2.0
     forecast_correction: bool = False
 
     def __post_init__(self) -> None:
@@ -82,7 +80,6 @@ class CompensationSettings:
             raise ValueError(
                 f"compensation.method must be one of {COMPENSATIONS}, got {self.method!r}"
             )
-        _number("compensation.forecast_error_persistence", self.forecast_error_persistence, 0, 100)
 
 
 @dataclass(frozen=True)
@@ -176,7 +173,6 @@ class RestSettings:
 #: The old flat ``[filter]`` keys that moved: old key -> (section, key).
 MOVED: dict[str, tuple[str, str]] = {
     "compensation": ("compensation", "method"),
-    "forecast_error_persistence": ("compensation", "forecast_error_persistence"),
     "forecast_correction": ("compensation", "forecast_correction"),
     "aoa_lift_k_m": ("vehicle", "lift_k_m"),
     "aoa_lift_k_sigma_m": ("vehicle", "lift_k_sigma_m"),
@@ -227,6 +223,11 @@ def retired_key_message(key: str) -> str | None:
         return f"filter.{key} is now {section}.{new}"
     if key in FIXED:
         return f"filter.{key} is no longer a setting; it is {FIXED[key]!r}"
+    if key == "forecast_error_persistence":
+        return (
+            "filter.forecast_error_persistence is no longer a setting: 1 with "
+            "compensation.forecast_correction, 2 without"
+        )
     if key in FIXED_WING:
         return (
             f"filter.{key} is no longer a setting: vehicle.kind = \"fixed-wing\" has "
@@ -239,7 +240,8 @@ def migrate_legacy(data: dict, source: str) -> dict:
     """A parsed config whose flat ``[filter]`` predates the groups, in today's sections.
 
     Returns ``data`` itself when there is nothing to move. A moved key is refused
-    when its new place is also given; a key whose behaviour is now fixed must give
+    when its new place is also given; the forecast's error persistence must be the one
+    its correction now implies (1 with it, 2 without); a key whose behaviour is now fixed must give
     that value (an old default or a shipped scenario's), or the file is refused
     naming the key and the value that holds now.
     """
@@ -254,6 +256,14 @@ def migrate_legacy(data: dict, source: str) -> dict:
             if new in table:
                 raise ValueError(f"{source}: filter.{key} and {section}.{new} both given")
             table[new] = flt.pop(key)
+    if "forecast_error_persistence" in flt:
+        persistence = flt.pop("forecast_error_persistence")
+        corrected = out.get("compensation", {}).get("forecast_correction", False)
+        if persistence != (1.0 if corrected else 2.0):
+            raise ValueError(
+                f"{source}: filter.forecast_error_persistence is no longer a setting; it is "
+                f"{1.0 if corrected else 2.0} with forecast_correction = {str(corrected).lower()}"
+            )
     for key, fixed in FIXED.items():
         if key in flt and flt.pop(key) != fixed:
             raise ValueError(f"{source}: filter.{key} is no longer a setting; it is {fixed!r}")

@@ -1,4 +1,4 @@
-"""The compensation's forecast error as filter noise (``forecast_error_persistence``)."""
+"""The compensation's forecast error as filter noise (``filters.forecast``)."""
 
 from dataclasses import replace
 
@@ -136,14 +136,18 @@ def test_the_first_forecasts_errors_are_noise(scenario, sets, t_end_s):
     assert np.all(ratio < chi2.ppf(0.999, 2) / 2), ratio
 
 
-def test_forecast_noise_grows_the_rate_covariance_in_a_roll_out_not_in_a_dive():
-    """tactical's roll-out of the climbing turn (47 s) against its steady dive (33 s)."""
+def test_forecast_noise_grows_the_rate_covariance_in_a_roll_out_not_in_a_dive(monkeypatch):
+    """tactical's roll-out of the climbing turn (47 s) against its steady dive (33 s), the
+    uncorrected forecast's error counted twice (its persistence) against not at all."""
+    import filters.forecast
+
     scn = load_flight("tactical", ["run.rate_hz=200"])
     sim = simulate_flight(scn, 0)
+    cfg = replace(
+        sim.config, compensation=replace(sim.config.compensation, forecast_correction=False)
+    )
     rate_var = {}
     for persistence in (0.0, 2.0):
-        f = replace(sim.config.compensation, forecast_error_persistence=persistence)
-        cfg = replace(sim.config, compensation=f)
         seen = {}
 
         def grab(p: Pipeline, seen=seen) -> None:
@@ -151,9 +155,11 @@ def test_forecast_noise_grows_the_rate_covariance_in_a_roll_out_not_in_a_dive():
                 if tk not in seen and p.nf.t_s >= tk:
                     seen[tk] = float(np.trace(p.nf.P[RATE, RATE]))
 
-        pipe = Pipeline(cfg)
-        pipe.on_epoch = lambda _est, pipe=pipe, grab=grab: grab(pipe)
-        _feed(pipe, sim.samples, sim.fixes, None)
+        with monkeypatch.context() as mp:
+            mp.setitem(filters.forecast.FORECAST_ERROR_PERSISTENCE, False, persistence)
+            pipe = Pipeline(cfg)
+            pipe.on_epoch = lambda _est, pipe=pipe, grab=grab: grab(pipe)
+            _feed(pipe, sim.samples, sim.fixes, None)
         rate_var[persistence] = seen
     steady = rate_var[2.0][33.0] / rate_var[0.0][33.0]
     roll_out = rate_var[2.0][48.0] / rate_var[0.0][48.0]
@@ -161,11 +167,16 @@ def test_forecast_noise_grows_the_rate_covariance_in_a_roll_out_not_in_a_dive():
     assert roll_out > 1.2
 
 
-def test_forecast_error_persistence_is_checked():
-    with pytest.raises(ValueError, match="forecast_error_persistence must be"):
-        CompensationSettings(forecast_error_persistence=-1.0)
-    with pytest.raises(ValueError, match="forecast_error_persistence must be"):
-        CompensationSettings(forecast_error_persistence=float("nan"))
+def test_the_forecast_errors_persistence_follows_its_correction():
+    """The filter counts the forecast's error once with the correction, twice without."""
+    short = "flight.legs=[{ duration_s = 3.0, ramp_s = 1.0, bank_deg = 30.0 }]"
+    scn = load_flight("tactical", ["run.rate_hz=200", short])
+    sim = simulate_flight(scn, 0)
+    for corrected, want in ((True, 1.0), (False, 2.0)):
+        comp = replace(sim.config.compensation, forecast_correction=corrected)
+        pipe = Pipeline(replace(sim.config, compensation=comp))
+        _feed(pipe, sim.samples, sim.fixes, None)
+        assert pipe._fe_persistence == want
 
 
 @pytest.mark.parametrize("part", ["force", "angular acceleration"])
