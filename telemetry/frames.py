@@ -59,6 +59,9 @@ class FrameCounts:
 
 #: Returned by :meth:`FrameDecoder.decode_frame` for a frame of an unknown id.
 UNKNOWN = object()
+#: Returned by :meth:`FrameDecoder.decode_frame` for an intact frame of a source outside
+#: the allowlist: its length can be trusted, so a scan steps over it whole.
+REJECTED = object()
 
 #: Counter names of the frame layer.
 KINDS = (
@@ -85,15 +88,19 @@ class FrameDecoder:
     def __init__(self, allow: set[tuple[int, int]] | None = None) -> None:
         self._mav = mavlink.MAVLink(None)
         self._mav.robust_parsing = True
+        # a second parser for look-ahead checks, so that they leave no trace
+        self._probe = mavlink.MAVLink(None)
+        self._probe.robust_parsing = True
         self.allow = allow
         self.counts = FrameCounts()
         self._last_seq: dict[tuple[int, int], int] = {}
 
     def decode_frame(self, frame: bytes | bytearray) -> mavlink.MAVLink_message | object | None:
-        """Decode one complete frame; None (counted) if it fails any check.
+        """Decode one complete frame; None (counted) if it is not intact.
 
         A well-formed frame of an id outside the dialect returns :data:`UNKNOWN`
-        (counted): its length can be trusted, its content cannot.
+        (counted): its length can be trusted, its content cannot. An intact frame of
+        a source outside the allowlist returns :data:`REJECTED` (counted).
         """
         try:
             msg = self._mav.decode(bytearray(frame))
@@ -108,7 +115,7 @@ class FrameDecoder:
         src = (msg.get_srcSystem(), msg.get_srcComponent())
         if self.allow is not None and src not in self.allow:
             self.counts.add("rejected source (allowlist)")
-            return None
+            return REJECTED
         seq = msg.get_seq()
         last = self._last_seq.get(src)
         if last is not None:
@@ -121,10 +128,12 @@ class FrameDecoder:
     def decode_buffer(self, buf: bytes | bytearray) -> list[mavlink.MAVLink_message]:
         """Decode every frame in ``buf`` (one UDP datagram, say), resyncing on bad bytes.
 
-        A frame whose header promises more bytes than ``buf`` holds is counted as
-        truncated. A frame that fails its CRC costs one byte of resync: the
-        scan restarts at the next start byte, so a good frame inside a corrupt
-        region is still found.
+        A frame that fails its CRC costs one byte of resync: the scan restarts at
+        the next start byte, so a good frame inside a corrupt region is still found.
+        A start byte whose header promises more bytes than ``buf`` holds is a false
+        start when an intact frame follows it (its bytes are counted as skipped) and
+        the datagram's truncated last frame otherwise. An intact frame, decoded,
+        unknown or rejected by the allowlist, is stepped over whole.
         """
         out: list[mavlink.MAVLink_message] = []
         i, n = 0, len(buf)
@@ -136,16 +145,36 @@ class FrameDecoder:
                 continue
             ln = frame_length(buf, i)
             if ln is None or i + ln > n:
-                self.counts.add("truncated frame")
-                break
+                j = self._next_intact(buf, i + 1)
+                if j is None:
+                    self.counts.add("truncated frame")
+                    break
+                self.counts.add("bytes skipped (no frame start)", j - i)
+                i = j
+                continue
             msg = self.decode_frame(buf[i : i + ln])
             if msg is None:
                 i += 1
                 continue
-            if msg is not UNKNOWN:
+            if msg is not UNKNOWN and msg is not REJECTED:
                 out.append(msg)
             i += ln
         return out
+
+    def _next_intact(self, buf: bytes | bytearray, i: int) -> int | None:
+        """Offset of the first intact frame at or after ``i`` (nothing counted), or None."""
+        n = len(buf)
+        j = _next_start(buf, i)
+        while j < n:
+            ln = frame_length(buf, j)
+            if ln is not None and j + ln <= n:
+                try:
+                    self._probe.decode(bytearray(buf[j : j + ln]))
+                    return j
+                except Exception:
+                    pass
+            j = _next_start(buf, j + 1)
+        return None
 
 
 def _next_start(buf: bytes | bytearray, i: int) -> int:

@@ -95,12 +95,12 @@ def read_tlog(
         plausible = buf[j] in (MAGIC_V1, MAGIC_V2) and (
             last_ts is None or abs(ts - last_ts) <= _MAX_STEP_US
         )
-        if not plausible or ln is None:
+        if not plausible:
             k = _resync(buf, i + 1, last_ts)
             dec.counts.add("bytes skipped (no frame start)", k - i)
             i = k
             continue
-        if j + ln > n:
+        if ln is None or j + ln > n:
             dec.counts.add("truncated frame")
             break
         msg = dec.decode_frame(buf[j : j + ln])
