@@ -237,7 +237,6 @@ class AlignmentMixin:
         calm_air_sigma_deg = CALM_AIR_SIGMA_DEG if cfg.vehicle.fixed_wing else 0.0
         self._slip_sigma = np.deg2rad(calm_air_sigma_deg)
         self._aoa_sigma = np.deg2rad(calm_air_sigma_deg)
-        self._model_rate_hz = SIDESLIP_RATE_HZ
         self._t_last_slip = -np.inf
         self._f_load_prev: np.ndarray | None = None
         self._k_load_prev = 1  # samples measured in the block f_load_prev came from

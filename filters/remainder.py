@@ -75,8 +75,7 @@ class RemainderMixin:
         from :meth:`initialise` until ``handover_hold_s`` after the models' first
         update since: what
         :meth:`current_remainder_updates` decides, without its counting (a query).
-        The pipeline runs the vehicle model at 5 Hz then, and at its own rate
-        otherwise (5 Hz, ``filters.pipeline.SIDESLIP_RATE_HZ``).
+        The vehicle models run at ``filters.vehicle_model.SIDESLIP_RATE_HZ`` throughout.
         """
         return (
             self._coasting()

@@ -7,7 +7,6 @@ from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 
 from filters.alignment import _gps_course
-from filters.ekf import NavFilter
 from filters.forecast import (
     FORECAST_ERROR_BLOCKS,
     FORECAST_ERROR_GATE,
@@ -199,7 +198,7 @@ class StepMixin:
         if (
             (self._slip_sigma > 0 or self._aoa_sigma > 0)
             and self.use_gps
-            and nf.t_s - self._t_last_slip >= self._model_interval_s(nf) - dt / 2
+            and nf.t_s - self._t_last_slip >= 1.0 / SIDESLIP_RATE_HZ - dt / 2
             and nf.consecutive_velocity_rejects < MODEL_PAUSE_AFTER_VELOCITY_REJECTS
         ):
             # the vehicle model holds with or without fixes (outages included), but
@@ -236,16 +235,6 @@ class StepMixin:
         self._record()
         if self.on_epoch is not None:
             self.on_epoch(self.latest)
-
-    def _model_interval_s(self, nf: NavFilter) -> float:
-        """Time between vehicle-model updates now, s.
-
-        ``1 / SIDESLIP_RATE_HZ`` while the filter counts the remainder as a coast's
-        (hand-over, coasts and their holds: ``coast_remainder_updates`` counts 5 Hz
-        updates), ``1 / filter.vehicle_model_rate_hz`` otherwise.
-        """
-        rate = SIDESLIP_RATE_HZ if nf.counts_as_coast() else self._model_rate_hz
-        return 1.0 / rate
 
     def _forecast_noise(self, d: np.ndarray, n_ok: int, t_s: float) -> None:
         """Add the error the compensation's forecast left in this block (the forecast's error).
