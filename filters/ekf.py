@@ -395,7 +395,6 @@ class NavFilter(
         self._handover_pending = self.handover_hold_s > 0.0
         self.check_covariance("initialisation")
 
-
     def _update(
         self, y: np.ndarray, r: np.ndarray, h: np.ndarray, m: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -405,5 +404,3 @@ class NavFilter(
         correlated with the prior as ``m`` where there is such a correlation).
         """
         return update_correlated(self.x, self.P, y, r, h, m)
-
-

@@ -271,9 +271,7 @@ class StepMixin:
         for held in bad.tolist():
             if held:
                 t_new = t_run + dt
-                self.nf.add_hold_noise(
-                    t_run, t_new, HOLD_WDOT_SIGMA_RPS2, HOLD_FORCE_SIGMA_MPS2
-                )
+                self.nf.add_hold_noise(t_run, t_new, HOLD_WDOT_SIGMA_RPS2, HOLD_FORCE_SIGMA_MPS2)
                 t_run = t_new
             else:
                 t_run = 0.0

@@ -129,9 +129,7 @@ def read_run(path: str | Path) -> RunInputs:
     return _read_run(path)
 
 
-def write_run(
-    path: str | Path, samples: ArraySamples, fixes: GpsFixes, config: RunConfig
-) -> Path:
+def write_run(path: str | Path, samples: ArraySamples, fixes: GpsFixes, config: RunConfig) -> Path:
     """Write a run as a directory of CSV files and ``config.toml``, or as a ``.tlog``."""
     return _write_run(path, samples, fixes, config)
 

@@ -230,7 +230,7 @@ def retired_key_message(key: str) -> str | None:
         )
     if key in FIXED_WING:
         return (
-            f"filter.{key} is no longer a setting: vehicle.kind = \"fixed-wing\" has "
+            f'filter.{key} is no longer a setting: vehicle.kind = "fixed-wing" has '
             f"{FIXED_WING[key]!r}, a free vehicle none"
         )
     return None

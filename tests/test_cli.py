@@ -74,8 +74,12 @@ def test_a_free_body_runs_without_a_vehicle_model(tmp_path):
     """``vehicle.kind = "free"`` (the default of a run that declares nothing): tactical's
     manoeuvres flown by a body with no motion constraint go through ``ngnav run`` with no
     vehicle-model update, and the GPS-held errors stay small."""
-    free = ["vehicle.kind=free", "vehicle.lift_k_m=0", "vehicle.lift_k_sigma_m=0",
-            "vehicle.body_velocity_error=false"]
+    free = [
+        "vehicle.kind=free",
+        "vehicle.lift_k_m=0",
+        "vehicle.lift_k_sigma_m=0",
+        "vehicle.body_velocity_error=false",
+    ]
     sets = [a for f in free for a in ("--set", f)]
     run("simulate", "--scenario", "tactical", *sets, "--out", str(tmp_path / "run"))
     assert 'kind = "free"' in (tmp_path / "run" / "config.toml").read_text()

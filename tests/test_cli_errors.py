@@ -27,8 +27,16 @@ def _one_line(proc: subprocess.CompletedProcess) -> str:
 @pytest.fixture(scope="module")
 def tactical_run(tmp_path_factory):
     d = tmp_path_factory.mktemp("tactical") / "run"
-    run_cli("simulate", "--scenario", "tactical", "--set", "flight.legs=[]", "--out", str(d),
-            check=False)
+    run_cli(
+        "simulate",
+        "--scenario",
+        "tactical",
+        "--set",
+        "flight.legs=[]",
+        "--out",
+        str(d),
+        check=False,
+    )
     if not (d / "config.toml").exists():
         run_cli("simulate", "--scenario", "tactical", "--out", str(d))
     return d
@@ -39,8 +47,9 @@ def test_a_diverged_filter_reports_in_one_line_keeps_its_estimates_and_exits_3(
 ):
     """No compensation of tactical's 6 mm mounting offsets loses the tilt within seconds."""
     out = tmp_path / "partial.csv"
-    proc = run_cli("run", str(tactical_run), "--compensation", "none", "--out", str(out),
-                   check=False)
+    proc = run_cli(
+        "run", str(tactical_run), "--compensation", "none", "--out", str(out), check=False
+    )
     assert proc.returncode == 3
     line = _one_line(proc)
     assert "the filter stopped" in line and "t = " in line and str(out) in line
@@ -94,21 +103,42 @@ def test_an_unwritable_out_is_refused_before_the_run(tactical_run, tmp_path):
 
 
 def test_an_unknown_set_key_names_it_and_suggests_the_nearest():
-    proc = run_cli("simulate", "--scenario", "tactical", "--set", "filter.rate_hzz=5",
-                   "--out", "x", check=False)
+    proc = run_cli(
+        "simulate",
+        "--scenario",
+        "tactical",
+        "--set",
+        "filter.rate_hzz=5",
+        "--out",
+        "x",
+        check=False,
+    )
     assert proc.returncode == 2
     line = _one_line(proc)
     assert "filter.rate_hzz" in line and "did you mean filter.rate_hz?" in line
-    proc = run_cli("simulate", "--scenario", "tactical", "--set", "filtr.rate_hz=5",
-                   "--out", "x", check=False)
+    proc = run_cli(
+        "simulate", "--scenario", "tactical", "--set", "filtr.rate_hz=5", "--out", "x", check=False
+    )
     assert proc.returncode == 2 and "did you mean filter?" in _one_line(proc)
 
 
 def test_ctrl_c_exits_130_without_a_traceback(tmp_path):
     """SIGINT (what Ctrl-C sends) while a simulated flight streams in real time."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "ngnav.cli", "simulate", "--scenario", "tactical",
-         "--out", str(tmp_path / "run"), "--stream", "udpout:127.0.0.1:9", "--speed", "1"],
+        [
+            sys.executable,
+            "-m",
+            "ngnav.cli",
+            "simulate",
+            "--scenario",
+            "tactical",
+            "--out",
+            str(tmp_path / "run"),
+            "--stream",
+            "udpout:127.0.0.1:9",
+            "--speed",
+            "1",
+        ],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

@@ -254,8 +254,13 @@ def test_a_turntable_truth_is_a_whole_body_truth():
 
     pivot = np.array([0.03, -0.05, 0.02])
     tr = fixed_axis_turn(
-        np.deg2rad(90.0), duration_s=2.0, rest_before_s=0.5, rest_after_s=0.5,
-        rate_hz=2000.0, axis_b=np.array([0.0, 0.0, 1.0]), pivot_b_m=pivot,
+        np.deg2rad(90.0),
+        duration_s=2.0,
+        rest_before_s=0.5,
+        rest_after_s=0.5,
+        rate_hz=2000.0,
+        axis_b=np.array([0.0, 0.0, 1.0]),
+        pivot_b_m=pivot,
     )
     np.testing.assert_allclose(np.linalg.norm(tr.pos_ned_m, axis=1), np.linalg.norm(pivot))
     dt = 1 / 2000.0

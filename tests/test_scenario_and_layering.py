@@ -142,7 +142,7 @@ def test_a_run_written_before_the_settings_were_grouped_still_reads(tmp_path):
         bad = old.replace(f"{key} = ", f"{key} = {value}\n# ")
         with pytest.raises(ValueError, match=rf"old.toml: filter\.{key} is no longer a setting"):
             read_run_config_text(bad, "old.toml")
-    both = old + "\n[compensation]\nmethod = \"none\"\n"
+    both = old + '\n[compensation]\nmethod = "none"\n'
     with pytest.raises(ValueError, match=r"filter\.compensation and compensation\.method both"):
         read_run_config_text(both, "old.toml")
 

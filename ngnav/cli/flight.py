@@ -86,8 +86,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if not src.exists():
         raise ValueError(f"{src}: no such file or directory")
     if not is_tlog(src) and not src.is_dir():
-        raise ValueError(f"{src} is not a run: give a directory (config.toml, array.csv, "
-                         "gps.csv) or a .tlog")
+        raise ValueError(
+            f"{src} is not a run: give a directory (config.toml, array.csv, gps.csv) or a .tlog"
+        )
     _check_writable(out)
     failure = None
     if is_tlog(out):
