@@ -63,9 +63,17 @@ class Estimator(Protocol):
 
     def push_samples(self, t_s: np.ndarray, accel_mps2: np.ndarray) -> int: ...
 
-    def push_fix(self, t_s: float, lat_deg: float, lon_deg: float, alt_m: float,
-                 vel_ned_mps: tuple[float, float, float], h_acc_m: float, v_acc_m: float,
-                 speed_acc_mps: float) -> None: ...
+    def push_fix(
+        self,
+        t_s: float,
+        lat_deg: float,
+        lon_deg: float,
+        alt_m: float,
+        vel_ned_mps: tuple[float, float, float],
+        h_acc_m: float,
+        v_acc_m: float,
+        speed_acc_mps: float,
+    ) -> None: ...
 
     def finish(self) -> int: ...
 
