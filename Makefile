@@ -19,6 +19,7 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/ruff check ngnav filters telemetry studies tests
+	$(BIN)/ruff format --check ngnav filters telemetry studies tests
 	$(BIN)/python -m pytest -n 2 --dist loadfile
 
 bench: $(STAMP)

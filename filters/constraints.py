@@ -13,6 +13,7 @@ from filters.algebra import (
     BODY_FRAME_MAX_CURVATURE_MPS,
 )
 from filters.state import ATT, RATE, VEL
+from filters.updates import Measurement
 from filters.vehicle_model import (
     LATERAL,
     LIFT_JACOBIAN_LAG_BLOCKS,
@@ -252,7 +253,17 @@ class ConstraintsMixin:
         self.counters.aoa_rejected += int(not ok)
         return nis
 
-    def _body_velocity_update(self, axis: int, sigma_v_mps: float) -> tuple[float, bool]:
+    def measure_body_velocity(
+        self, axis: int, sigma_v_mps: float
+    ) -> tuple[Measurement, BodyVelocityRecord]:
+        """A vehicle model (``axis``: :data:`LATERAL` or :data:`VERTICAL`) as a measurement.
+
+        The velocity along the constraint axis is measured as zero with 1-sigma
+        ``sigma_v_mps``; the prediction adds the second-order remainder's mean, R its
+        variance as counted (:func:`remainder_variance`) and, for the vertical model,
+        the angle of attack's load noise and lift-off blend. Also returns the terms it
+        was built from (``accepted`` False until an update says otherwise).
+        """
         v_axis, h = self.body_velocity_model(self.q, self.vel, axis, self.aoa)
         mq, sel, mean_shift = self.body_velocity_second_order_form(axis)
         rem = self._form_moments(mq, sel, mean_shift)
@@ -284,18 +295,21 @@ class ConstraintsMixin:
             var += load_var
             if blend_var > 0.0:
                 var += blend_var
-        r = np.array([[var]])
-        log = self.body_velocity_log
-        if log is not None:
-            aoa = self.aoa if axis == VERTICAL else 0.0
-            rec = (self.t_s, axis, self.q.copy(), self.vel.copy(), aoa, v_axis)
-            rec += (h[0, ATT].copy(), h[0, VEL].copy(), dv_da, rem, float(var))
-        nis, ok = self._gated_update(np.array([-(v_axis + rem.mean)]), r, h, self.gate1)
+        aoa = self.aoa if axis == VERTICAL else 0.0
+        rec = BodyVelocityRecord(
+            self.t_s, axis, self.q.copy(), self.vel.copy(), aoa, v_axis, h[0, ATT].copy(),
+            h[0, VEL].copy(), dv_da, rem, float(var), False,
+        )  # fmt: skip
+        return Measurement(np.array([-(v_axis + rem.mean)]), h, np.array([[var]])), rec
+
+    def _body_velocity_update(self, axis: int, sigma_v_mps: float) -> tuple[float, bool]:
+        meas, rec = self.measure_body_velocity(axis, sigma_v_mps)
+        nis, ok = self._gated_update(meas, self.gate1)
         if ok:
             self._model_last_t[axis] = self.t_s
         self._model_last_ok[axis] = ok
-        if log is not None:
-            log.append(BodyVelocityRecord(*rec, ok))
+        if self.body_velocity_log is not None:
+            self.body_velocity_log.append(rec._replace(accepted=ok))
         return nis, ok
 
     def in_body_frame(self) -> bool:

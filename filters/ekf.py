@@ -42,7 +42,7 @@ from filters.process import ProcessMixin
 from filters.remainder import RemainderMixin
 from filters.state import ATT, N_NAV, POS, RATE, VEL, StateLayout
 from filters.supervision import Counters, SupervisionMixin
-from filters.updates import update_correlated
+from filters.updates import Measurement, update_correlated
 from filters.vehicle_model import (
     ATTITUDE_REMAINDER_UPDATES,
     COAST_AFTER_S,
@@ -395,12 +395,11 @@ class NavFilter(
         self._handover_pending = self.handover_hold_s > 0.0
         self.check_covariance("initialisation")
 
-    def _update(
-        self, y: np.ndarray, r: np.ndarray, h: np.ndarray, m: np.ndarray | None = None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The Kalman update of every measurement (error state ``x``, zero before it).
+    def _apply(self, meas: Measurement) -> None:
+        """Fuse one measurement (ungated) and fold the error into the nominal state.
 
         filterpy's update (:func:`filters.updates.update_correlated`, with the noise
-        correlated with the prior as ``m`` where there is such a correlation).
+        correlated with the prior as ``meas.cross`` where there is such a correlation).
         """
-        return update_correlated(self.x, self.P, y, r, h, m)
+        self.x, self.P = update_correlated(self.x, self.P, meas.z, meas.R, meas.H, meas.cross)
+        self._inject()

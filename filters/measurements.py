@@ -8,7 +8,7 @@ import numpy as np
 
 from filters.state import ATT, POS, RATE, VEL
 from filters.supervision import GAP_RESET_AFTER_REJECTS
-from filters.updates import quadratic_form
+from filters.updates import Measurement, quadratic_form
 from ngnav.records import GpsUpdateResult
 from ngnav.rotation import (
     dcm_from_quat,
@@ -59,25 +59,26 @@ class MeasurementsMixin:
             h[:, self.layout.dr] = sg[6:]
         return pred, h
 
-    def update_rate(
+    def measure_rate(
         self,
         quad_mean: np.ndarray,
         w_block: np.ndarray,
         k: int,
         sg: np.ndarray | None = None,
+        block: tuple | None = None,
         held: np.ndarray | None = None,
-    ) -> float | None:
-        """Update with a block's mean solved rate-quadratic terms (nq,); returns the NIS.
+    ) -> Measurement:
+        """A block's mean solved rate-quadratic terms (nq,) as a measurement.
 
-        ``sg`` is the block's :meth:`geometry_jacobian` (with ``DR`` states). Right
-        after :meth:`propagate` over the same block, the measurement's noise is
-        correlated with that block's propagation noise (:meth:`rate_noise_cross`;
-        ``held`` (K,) marks its held samples) and the update carries it.
+        The prediction is :meth:`rate_model`'s plus the rate error's second-order mean
+        ``P_ij`` and the biases (and ``S G dr_hat`` with ``DR`` states); R is the block
+        mean's noise plus the spread of ``d_i d_j`` about ``P_ij``. ``sg`` is the
+        block's :meth:`geometry_jacobian` (with ``DR`` states). ``block`` is the
+        propagation that made ``w_block`` (:meth:`propagate`'s ``(k, dt, C)``), whose
+        noise the measurement's is correlated with (:meth:`rate_noise_cross`;
+        ``held`` (K,) marks its held samples); None: independent.
         """
         nq = self.layout.nq
-        block, self._block = self._block, None
-        if nq == 0 or not self.rate_measurement:
-            return None
         prr = self.P[RATE, RATE]
         pred, h = self.rate_model(w_block, sg, np.diagonal(prr))
         i, j = self.quad_pairs[:, 0], self.quad_pairs[:, 1]
@@ -88,20 +89,30 @@ class MeasurementsMixin:
         r.flat[:: nq + 1] += prr[i, i] * prr[j, j] + pij * pij
         if self.layout.n_dr:
             pred = pred + sg[6:] @ self.dr
-        y = quad_mean - pred
-        self.last_rate_innovation = y
         m = None if block is None else self.rate_noise_cross(*block, held)
-        s = h @ self.P @ h.T + r
-        if m is not None:
-            hm = h @ m
-            s += hm + hm.T
-        nis = quadratic_form(y, s)
-        if nis > self.gate_q:
-            self.counters.rate_rejected += 1
-            return nis
-        self.x, self.P = self._update(y, r, h, m)
-        self._inject()
-        self.counters.rate_updates += 1
+        return Measurement(quad_mean - pred, h, r, m)
+
+    def update_rate(
+        self,
+        quad_mean: np.ndarray,
+        w_block: np.ndarray,
+        k: int,
+        sg: np.ndarray | None = None,
+        held: np.ndarray | None = None,
+    ) -> float | None:
+        """Update with a block's mean solved rate-quadratic terms (nq,); returns the NIS.
+
+        Right after :meth:`propagate` over the same block the measurement carries its
+        correlation with that block's propagation noise (:meth:`measure_rate`).
+        """
+        block, self._block = self._block, None
+        if self.layout.nq == 0 or not self.rate_measurement:
+            return None
+        meas = self.measure_rate(quad_mean, w_block, k, sg, block, held)
+        self.last_rate_innovation = meas.z
+        nis, ok = self._gated_update(meas, self.gate_q)
+        self.counters.rate_updates += int(ok)
+        self.counters.rate_rejected += int(not ok)
         return nis
 
     def rate_at_rest_model(self) -> np.ndarray:
@@ -127,22 +138,23 @@ class MeasurementsMixin:
         """
         if not (np.isfinite(sigma_rps) and sigma_rps > 0.0):
             raise ValueError(f"sigma_rps must be finite and > 0, got {sigma_rps}")
-        nis, ok = self._gated_update(
-            -self.w, np.eye(3) * (sigma_rps * sigma_rps), self.rate_at_rest_model()
-        )
+        meas = Measurement(-self.w, self.rate_at_rest_model(), np.eye(3) * (sigma_rps * sigma_rps))
+        nis, ok = self._gated_update(meas)
         self.counters.zero_rate_used += int(ok)
         self.counters.zero_rate_rejected += int(not ok)
         return nis, ok
 
-    def update_static_biases(
+    def measure_static_biases(
         self,
         mean_features: np.ndarray,
         n_samples: int,
         effect: np.ndarray | None = None,
         sample_cov: np.ndarray | None = None,
         walk_s: float = 0.0,
-    ) -> None:
-        """Static alignment: at rest ``wdot = 0`` and ``w = 0``, so the mean solved
+    ) -> Measurement:
+        """The static alignment's measurement of the biases (:meth:`update_static_biases`).
+
+        At rest ``wdot = 0`` and ``w = 0``, so the mean solved
         angular acceleration and rate products over ``n_samples`` samples measure
         their biases directly (noise ``feature_cov / n``). Through the channel-bias
         correlation this also informs the force bias. Without it a gyro-free
@@ -184,9 +196,20 @@ class MeasurementsMixin:
             r = mi @ np.asarray(sample_cov, dtype=float) @ mi.T / max(int(n_samples), 1)
         if walk_s > 0.0:
             r = r + m[idx] @ self.noise.bias_rw_cov @ m[idx].T * walk_s
-        y = mean_features[idx] - m[idx] @ self.bias
-        self.x, self.P = self._update(y, r, h)
-        self._inject()
+        return Measurement(mean_features[idx] - m[idx] @ self.bias, h, r)
+
+    def update_static_biases(
+        self,
+        mean_features: np.ndarray,
+        n_samples: int,
+        effect: np.ndarray | None = None,
+        sample_cov: np.ndarray | None = None,
+        walk_s: float = 0.0,
+    ) -> None:
+        """Static alignment: fuse :meth:`measure_static_biases` (ungated: the rest is known)."""
+        self._apply(
+            self.measure_static_biases(mean_features, n_samples, effect, sample_cov, walk_s)
+        )
 
     def gps_model(
         self, q_nb: np.ndarray, omega_b_rps: np.ndarray
@@ -211,6 +234,34 @@ class MeasurementsMixin:
         hv[:, RATE] = -c @ skew(r)
         return cr, cwr, hp, hv
 
+    def measure_gps_position(
+        self, pos_ned_m: np.ndarray, pos_sigma_m: np.ndarray | float, dt_fix_s: float = 0.0
+    ) -> Measurement:
+        """A fix's antenna position (NED, m; 1-sigma per axis) as a measurement.
+
+        The prediction is the array's position plus the antenna's lever arm, moved by
+        ``v dt_fix_s`` to the fix's time (``dt_fix_s``: fix time minus filter time).
+        """
+        cr, _, hp, _ = self.gps_model(self.q, self.w)
+        rp = np.diag(np.broadcast_to(np.asarray(pos_sigma_m, dtype=float), 3) ** 2)
+        return Measurement(pos_ned_m - (self.pos + cr + self.vel * dt_fix_s), hp, rp)
+
+    def measure_gps_velocity(self, vel_ned_mps: np.ndarray, vel_sigma_mps: float) -> Measurement:
+        """A fix's antenna velocity (NED, m/s; 1-sigma per axis) as a measurement.
+
+        The prediction is the array's velocity plus the lever arm's ``C (w x r)``; with
+        the body-frame velocity error (:meth:`in_body_frame`) also the second-order
+        part's mean, whose covariance R carries (:meth:`velocity_curvature`).
+        """
+        _, cwr, _, hv = self.gps_model(self.q, self.w)
+        rv = self._eye3 * float(vel_sigma_mps) ** 2
+        yv = vel_ned_mps - (self.vel + cwr)
+        if self.in_body_frame():
+            mc, cc = self.velocity_curvature()
+            yv = yv - mc
+            rv = rv + cc
+        return Measurement(yv, hv, rv)
+
     def update_gps(
         self,
         pos_ned_m: np.ndarray,
@@ -232,19 +283,16 @@ class MeasurementsMixin:
         if np.isfinite(self._t_prev_fix) and t_fix > self._t_prev_fix:
             self.fix_interval_s = t_fix - self._t_prev_fix
         self._t_prev_fix = t_fix
-        cr, _, hp, _ = self.gps_model(self.q, self.w)
-        rp = np.diag(np.broadcast_to(np.asarray(pos_sigma_m, dtype=float), 3) ** 2)
-        yp = pos_ned_m - (self.pos + cr + self.vel * dt_fix_s)
-        sp = hp @ self.P @ hp.T + rp
+        mp = self.measure_gps_position(pos_ned_m, pos_sigma_m, dt_fix_s)
+        yp, sp = mp.z, mp.innovation_cov(self.P)
         nis_h = quadratic_form(yp[0:2], sp[0:2, 0:2])
         nis_vt = float(yp[2] ** 2 / sp[2, 2]) if sp[2, 2] > 0 else float("inf")
         if reset:
             nis_p = quadratic_form(yp, sp)
             passed = np.isfinite(nis_p) and nis_p <= self.gate3
             if passed or self._consec_rejects + 1 >= GAP_RESET_AFTER_REJECTS:
-                _, cwr, _, hv = self.gps_model(self.q, self.w)
-                yv = vel_ned_mps - (self.vel + cwr)
-                nis_v = quadratic_form(yv, hv @ self.P @ hv.T + np.eye(3) * vel_sigma_mps**2)
+                mv = self.measure_gps_velocity(vel_ned_mps, vel_sigma_mps)
+                nis_v = quadratic_form(mv.z, mv.innovation_cov(self.P))
                 self.reset_to_fix(
                     pos_ned_m - self.vel * dt_fix_s, vel_ned_mps, pos_sigma_m, vel_sigma_mps
                 )
@@ -255,15 +303,9 @@ class MeasurementsMixin:
             self.counters.gps_rejected_vel += 1
             self._consec_rejects += 1
             return GpsUpdateResult(nis_p, float("nan"), False, False, nis_h, nis_vt)
-        nis_p, ok_p = self._gated_update(yp, rp, hp)
-        _, cwr, _, hv = self.gps_model(self.q, self.w)  # after the position update
-        rv = self._eye3 * float(vel_sigma_mps) ** 2
-        yv = vel_ned_mps - (self.vel + cwr)
-        if self.in_body_frame():
-            mc, cc = self.velocity_curvature()
-            yv = yv - mc
-            rv = rv + cc
-        nis_v, ok_v = self._gated_update(yv, rv, hv)
+        nis_p, ok_p = self._gated_update(mp)
+        # the velocity at the state the position update left
+        nis_v, ok_v = self._gated_update(self.measure_gps_velocity(vel_ned_mps, vel_sigma_mps))
         self.counters.gps_used += int(ok_p or ok_v)
         self.counters.gps_rejected_pos += int(not ok_p)
         self.counters.gps_rejected_vel += int(not ok_v)

@@ -21,6 +21,8 @@ is the filter's own rate estimate, so the compensation does not drift.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from filters.alignment import AlignmentMixin
@@ -42,6 +44,7 @@ from ngnav.frontend import ArraySolver
 from ngnav.geodesy import LocalTangentPlane
 from ngnav.layout import ArrayLayout
 from ngnav.records import (
+    NAV_BLOCKS,
     ArraySamples,
     Estimates,
     FlightTruth,
@@ -202,20 +205,20 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
         self._rate_nis_t: list[float] = []
         self.n_fallbacks = 0
 
-
     def _record(self) -> None:
         nf = self.nf
         pb = self._p_bound[:12, :12] if self._p_bound is not None else None
         self.n_epochs += 1
         if not self.keep_estimates:
             self._rec.clear()
-        p12 = nf.P[:12, :12].copy()
+        p = nf.P.copy()
         vel = nf.vel
         if nf.in_body_frame():
             # the NED velocity a user reads: its second-order part's mean and covariance
             mc, cc = nf.velocity_curvature()
             vel = vel + mc
-            p12[VEL, VEL] += cc
+            p[VEL, VEL] += cc
+        lay = nf.layout
         aoa = (nf.aoa, nf.aoa_sigma) if nf.layout.n_aoa else (None, None)
         c = nf.counters
         est = NavEstimate(
@@ -225,7 +228,7 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
             nf.q,
             nf.w,
             nf.bias,
-            p12,
+            p,
             pb,
             *aoa,
             last_gps=self.last_gps,
@@ -240,10 +243,16 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
             + self.counts["samples held (saturated)"],
             rate_updates_rejected=c.rate_rejected,
             faulty_channels=self.block_faulty,
+            state_blocks=tuple((name, dof) for name, dof in lay.blocks if dof),
+            dr_m=nf.dr if lay.n_dr else None,
+            aoa_states=np.array([nf.aoa_b, nf.aoa_k][: lay.n_aoa]) if lay.n_aoa else None,
         )
         self.latest = est
-        self._rec.append(est)
-
+        # the run's history keeps the navigation block only: the full P (n^2 floats an
+        # epoch, n up to ~50 with sensor positions) goes to on_epoch and `latest`
+        self._rec.append(
+            replace(est, cov=est.cov_nav, state_blocks=NAV_BLOCKS, dr_m=None, aoa_states=None)
+        )
 
     # --------------------------------------------------------------- output
     def result(self) -> RunResult:
@@ -292,6 +301,7 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
             self._nq,
             nf.layout.n,
             np.array(self._rate_nis_t),
+            self.latest,
         )
 
 

@@ -69,6 +69,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from ngnav.records import NAV_BLOCKS
+
 
 def block_slices(blocks: tuple[tuple[str, int], ...]) -> dict[str, slice]:
     """Slices of consecutive ``(name, dof)`` blocks, in their declared order."""
@@ -82,10 +84,7 @@ def block_slices(blocks: tuple[tuple[str, int], ...]) -> dict[str, slice]:
 #: The blocks every filter carries, in order: navigation (position, velocity, attitude,
 #: rate) and the biases of the solved angular acceleration and specific force.
 FIXED_BLOCKS: tuple[tuple[str, int], ...] = (
-    ("pos", 3),
-    ("vel", 3),
-    ("att", 3),
-    ("rate", 3),
+    *NAV_BLOCKS,
     ("b_wdot", 3),
     ("b_f", 3),
 )

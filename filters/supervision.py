@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from filters.state import ATT
-from filters.updates import quadratic_form
+from filters.updates import Measurement, quadratic_form
 from filters.vehicle_model import (
     VERTICAL,
     constraint_axes,
@@ -91,15 +91,12 @@ class Counters:
 class SupervisionMixin:
     """Gated updates, runs of rejections, the heading check, covariance checks."""
 
-    def _gated_update(
-        self, y: np.ndarray, r: np.ndarray, h: np.ndarray, gate: float | None = None
-    ) -> tuple[float, bool]:
-        s = h @ self.P @ h.T + r
-        nis = quadratic_form(y, s)
+    def _gated_update(self, meas: Measurement, gate: float | None = None) -> tuple[float, bool]:
+        """Fuse ``meas`` if its NIS passes ``gate`` (default the 3-dof one); (NIS, fused)."""
+        nis = quadratic_form(meas.z, meas.innovation_cov(self.P))
         if not np.isfinite(nis) or nis > (self.gate3 if gate is None else gate):
             return nis, False
-        self.x, self.P = self._update(y, r, h)
-        self._inject()
+        self._apply(meas)
         return nis, True
 
     @property

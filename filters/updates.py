@@ -1,5 +1,7 @@
 """Kalman updates beyond filterpy's plain one, built on it.
 
+:class:`Measurement` is what every measurement model gives the filter: ``(z, H, R)``
+and, where there is one, the noise's correlation with the propagation.
 :func:`update_correlated` is filterpy's ``update`` on the state augmented with the
 measurement noise, for noise correlated with the prior's error; :func:`quadratic_form`
 is the NIS ``y^T S^-1 y`` the gates test.
@@ -7,8 +9,42 @@ is the NIS ``y^T S^-1 y`` the gates test.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from filterpy.kalman import update as kf_update
+
+
+class Measurement(NamedTuple):
+    """One measurement as filterpy's ``update`` takes it, at a zero error state.
+
+    Attributes
+    ----------
+    z : array (m,)
+        The innovation: measured minus predicted, in the measurement's units (the
+        error state is zero between updates, so it is filterpy's residual ``z - H x``).
+    H : array (m, n)
+        Its Jacobian on the error state.
+    R : array (m, m)
+        Its noise covariance.
+    cross : array (n, m) or None
+        ``E[dx v^T]``, the prior error's covariance with the noise (the rate products'
+        with their block's propagation noise); None where they are independent.
+    """
+
+    z: np.ndarray
+    H: np.ndarray
+    R: np.ndarray
+    cross: np.ndarray | None = None
+
+    def innovation_cov(self, p: np.ndarray) -> np.ndarray:
+        """``S = H P H^T + R`` (plus ``H M + M^T H^T`` with a cross-covariance ``M``)."""
+        h = self.H
+        s = h @ p @ h.T + self.R
+        if self.cross is not None:
+            hm = h @ self.cross
+            s += hm + hm.T
+        return s
 
 
 def update_correlated(

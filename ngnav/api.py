@@ -106,8 +106,10 @@ def run(
     Returns
     -------
     RunResult
-        ``estimates`` (:class:`ngnav.records.Estimates`, full 12x12 covariance per
-        epoch), GPS ``innovations``, ``rate_nis`` and ``counts``.
+        ``estimates`` (:class:`ngnav.records.Estimates`, the full 12 x 12 navigation
+        covariance per epoch), GPS ``innovations``, ``rate_nis``, ``counts``, and
+        ``final`` (:class:`ngnav.records.NavEstimate`: the last epoch with the whole
+        error state's covariance, ``final.block_cov("b_f")`` for one block).
 
     Raises
     ------

@@ -10,6 +10,11 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+#: The navigation error blocks every estimate starts with, in order (``filters.state``).
+NAV_BLOCKS: tuple[tuple[str, int], ...] = (("pos", 3), ("vel", 3), ("att", 3), ("rate", 3))
+#: Number of navigation error states.
+N_NAV = 12
+
 
 def frozen_array(a: np.ndarray | None, name: str, shape_tail: tuple[int, ...] = ()) -> np.ndarray:
     """Copy ``a`` to a read-only float array and check its trailing shape."""
@@ -157,9 +162,12 @@ class NavEstimate:
         Body rate, FRD, rad/s.
     bias : array (k,)
         Feature-bias estimates ``[wdot(3), f(3), quad(nq)]``.
-    cov_nav : array (12, 12)
-        Covariance of the navigation errors (position, velocity, attitude as a NED
-        small angle, rate), in that order (:mod:`filters.state`).
+    cov : array (n, n)
+        Covariance of the whole error state, its blocks in the order of
+        ``state_blocks`` (:mod:`filters.state`): position (m), velocity (m/s, the
+        velocity a user reads), attitude (a NED small angle, rad), rate (rad/s), then
+        the biases, sensor positions and angle-of-attack states the filter carries.
+        :attr:`cov_nav` is its navigation (first 12 x 12) block.
     bound_nav : array (12, 12) or None
         The same filter's covariance linearised at the truth (simulations only).
     aoa_rad, aoa_sigma_rad : float or None
@@ -186,6 +194,15 @@ class NavEstimate:
         Rate updates rejected by their gate so far.
     faulty_channels : int
         Bit ``i`` set: channel ``i`` was invalid or saturated in this block.
+    state_blocks : tuple of (str, int)
+        The error state's ordered ``(name, dof)`` blocks that ``cov`` follows; by
+        default the four navigation blocks alone (a 12 x 12 ``cov``).
+    dr_m : array (3N,) or None
+        Estimated sensor-position errors ``dr_i`` (FRD, m; sensor ``i`` at
+        ``3 i : 3 i + 3``) when the filter carries them (block ``dr``).
+    aoa_states : array (1-2,) or None
+        The angle-of-attack block's nominal when carried (block ``aoa``): the lift
+        law's offset (rad) and its ``K`` (m), or the offset alone.
     """
 
     t_s: float
@@ -194,7 +211,7 @@ class NavEstimate:
     q_nb: np.ndarray
     omega_b_rps: np.ndarray
     bias: np.ndarray
-    cov_nav: np.ndarray
+    cov: np.ndarray
     bound_nav: np.ndarray | None = None
     aoa_rad: float | None = None
     aoa_sigma_rad: float | None = None
@@ -209,15 +226,38 @@ class NavEstimate:
     held_samples: int = 0
     rate_updates_rejected: int = 0
     faulty_channels: int = 0
+    state_blocks: tuple[tuple[str, int], ...] = NAV_BLOCKS
+    dr_m: np.ndarray | None = None
+    aoa_states: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        n = sum(dof for _, dof in self.state_blocks)
+        if n < N_NAV or self.state_blocks[: len(NAV_BLOCKS)] != NAV_BLOCKS:
+            raise ValueError(f"state_blocks must start with {NAV_BLOCKS}, got {self.state_blocks}")
         shapes = {"pos_ned_m": (3,), "vel_ned_mps": (3,), "q_nb": (4,), "omega_b_rps": (3,)}
-        shapes |= {"bias": (), "cov_nav": (12, 12)}
-        if self.bound_nav is not None:
-            shapes["bound_nav"] = (12, 12)
-        if self.rate_innovation is not None:
-            shapes["rate_innovation"] = ()
+        shapes |= {"bias": (), "cov": (n, n)}
+        for name, tail in (("bound_nav", (N_NAV, N_NAV)), ("rate_innovation", ())):
+            if getattr(self, name) is not None:
+                shapes[name] = tail
+        for name in ("dr_m", "aoa_states"):
+            if getattr(self, name) is not None:
+                shapes[name] = ()
         freeze_fields(self, shapes)
+
+    @property
+    def cov_nav(self) -> np.ndarray:
+        """The navigation block (12, 12) of :attr:`cov`: position, velocity, attitude, rate."""
+        return self.cov[:N_NAV, :N_NAV]
+
+    def block_cov(self, name: str) -> np.ndarray:
+        """The covariance of one named block of :attr:`state_blocks` (dof, dof)."""
+        start = 0
+        for block, dof in self.state_blocks:
+            if block == name:
+                return self.cov[start : start + dof, start : start + dof]
+            start += dof
+        known = ", ".join(b for b, d in self.state_blocks if d)
+        raise KeyError(f"no state block {name!r} in this estimate (it has: {known})")
 
 
 @dataclass(frozen=True)
@@ -294,7 +334,10 @@ class RunResult:
     """Estimates, GPS innovations, rate-measurement NIS and the run's counters.
 
     ``rate_dim`` is the rate measurement's size, ``state_size`` the error state's;
-    ``rate_nis_t_s`` holds the time of each ``rate_nis`` value (s).
+    ``rate_nis_t_s`` holds the time of each ``rate_nis`` value (s). ``estimates``
+    keep each epoch's navigation covariance (12 x 12); ``final`` is the last epoch's
+    whole record, with the full covariance and the estimated biases, sensor positions
+    and angle-of-attack states.
     """
 
     estimates: Estimates
@@ -305,6 +348,7 @@ class RunResult:
     rate_dim: int = field(default=3)
     state_size: int = 0
     rate_nis_t_s: np.ndarray | None = None
+    final: NavEstimate | None = None
 
 
 @dataclass(frozen=True)

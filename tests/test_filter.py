@@ -159,6 +159,28 @@ def test_bad_samples_and_a_glitch_do_not_stop_or_corrupt_the_run(tactical):
     assert np.abs(err_bad.pos_ned_m[late] - err_ok.pos_ned_m[late]).max() < 0.5
 
 
+def test_the_final_record_carries_the_whole_state_and_its_covariance(tactical):
+    """The last epoch's record holds every block the filter carries, the one it used."""
+    res = run_filter(tactical.samples, tactical.fixes, tactical.config)
+    fin = res.final
+    names = [name for name, _ in fin.state_blocks]
+    assert names == ["pos", "vel", "att", "rate", "b_wdot", "b_f", "b_quad", "dr", "aoa"]
+    assert fin.cov.shape == (res.state_size, res.state_size)
+    np.testing.assert_array_equal(fin.cov, fin.cov.T)
+    assert np.linalg.eigvalsh(fin.cov).min() > 0.0
+    np.testing.assert_array_equal(fin.cov_nav, res.estimates.cov_nav[-1])
+    np.testing.assert_array_equal(fin.block_cov("vel"), fin.cov[3:6, 3:6])
+    # the sensor positions' estimate against the simulated residual scatter (27 dof)
+    dr_true = (
+        tactical.true_errors.position_error_b_m - tactical.config.known_errors.position_error_b_m
+    ).ravel()
+    e = dr_true - fin.dr_m
+    assert e @ np.linalg.solve(fin.block_cov("dr"), e) < chi2.ppf(0.999, 27)
+    assert fin.aoa_states.shape == (2,)
+    with pytest.raises(KeyError, match="no state block 'gyro'"):
+        fin.block_cov("gyro")
+
+
 def test_covariance_check_fails_loudly():
     eye = np.eye(9) * 1e-6
     nf = NavFilter(FilterNoise(eye, eye, eye), np.array([[1, 2], [0, 2], [0, 1]]), np.zeros(3))

@@ -461,7 +461,7 @@ def _hand_estimate() -> NavEstimate:
         q_nb=np.array(_quat_from_euler(0.1, -0.2, -2.5)),
         omega_b_rps=np.array([0.01, -0.02, 0.03]),
         bias=np.zeros(9),
-        cov_nav=np.diag([4.0, 9.0, 16.0, 0.25, 0.36, 0.49, 1e-4, 4e-4, 9e-4, 1e-6, 4e-6, 9e-6]),
+        cov=np.diag([4.0, 9.0, 16.0, 0.25, 0.36, 0.49, 1e-4, 4e-4, 9e-4, 1e-6, 4e-6, 9e-6]),
         last_gps=GpsUpdateResult(
             nis_pos=9.0,
             nis_vel=2 * 7.814727903251178,
