@@ -5,12 +5,29 @@ Shared by the process, measurement and vehicle models (:mod:`filters.ekf`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
 
 from filters.state import ATT, RATE, VEL
 from ngnav.rotation import skew
+
+
+def shrink_to_size(x: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """A noisy estimate for a Jacobian: each component to ``sign(x) sqrt(max(0, x^2 - var))``.
+
+    ``x^2 - var`` is the unbiased estimate of the true component's square (``var`` the
+    estimate's noise variance, (3,)). A Jacobian built from the estimate itself would
+    take noise for motion and claim information the measurement does not hold
+    (errors in variables); where the component is within its noise it reads zero.
+    """
+    return np.array(
+        [
+            math.copysign(math.sqrt(max(xi * xi - v, 0.0)), xi) if xi else 0.0
+            for xi, v in zip(np.asarray(x).tolist(), np.asarray(var).tolist(), strict=True)
+        ]
+    )
 
 
 def _product_derivatives(pairs: Sequence[Sequence[int]]) -> np.ndarray:

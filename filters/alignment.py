@@ -58,9 +58,8 @@ class AlignmentMixin:
         se = self._se
         dt = self.dt
         noise = filter_noise(self.solver, cfg, None if se is None else se[:, 0:6])
-        if self.method == "oracle" or not cfg.filter.position_states:
-            # no DR states: the oracle removes the whole geometry error (nothing left to
-            # estimate), or the configuration leaves the scatter unmodelled
+        if self.method == "oracle":
+            # no DR states: the oracle removes the whole geometry error (nothing left)
             noise = replace(noise, position_sigma_m=0.0)
         self.noise = noise
         veh = cfg.vehicle
@@ -258,9 +257,16 @@ class AlignmentMixin:
         #: ``(1 + g) N`` with ``N`` the raw feature noise variance per sample and ``g``
         #: the forecast's noise gain; a block of ``k`` samples has ``1 / k`` of it.
         self.forecast_error_floor = np.zeros(6)
+        n_sample = np.diag(self.solver.covariance())[0:6]
+        s = self._smooth_gain
+        #: The noise variance of the angular acceleration the sensor positions' Jacobian
+        #: reads, times the block's samples (3,): the forecast's ``g N`` (the smoother's
+        #: ``s / (2 - s) N`` without one).
+        self.wdot_jacobian_var = s / (2.0 - s) * n_sample[0:3]
         if self.predictor is not None:
             gain = noise_gain(self.predictor, self._hist[:window, 0:9])[3:9]
-            self.forecast_error_floor = (1.0 + gain) * np.diag(self.solver.covariance())[0:6]
+            self.forecast_error_floor = (1.0 + gain) * n_sample
+            self.wdot_jacobian_var = gain[0:3] * n_sample[0:3]
         self._full_check_every = max(1, round(cfg.filter.rate_hz))  # Cholesky once a second
         # the zero-rate update at detected rest (rest.rate_sigma_dps > 0)
         self._rest_sigma = float(np.deg2rad(cfg.rest.rate_sigma_dps))

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
+from filters.algebra import shrink_to_size
 from filters.state import ATT, POS, RATE, VEL
 from filters.supervision import GAP_RESET_AFTER_REJECTS
 from filters.updates import Measurement, quadratic_form
@@ -47,12 +46,7 @@ class MeasurementsMixin:
         pred = (w_block.T @ w_block)[i, j] * inv_k
         w_mean = w_block.sum(axis=0) * inv_k
         if rate_var is not None:
-            w_mean = np.array(
-                [
-                    math.copysign(math.sqrt(max(wm * wm - v, 0.0)), wm) if wm else 0.0
-                    for wm, v in zip(w_mean.tolist(), np.asarray(rate_var).tolist(), strict=True)
-                ]
-            )
+            w_mean = shrink_to_size(w_mean, rate_var)
         h = self._h_rate_base.copy()
         h[:, RATE] = self._quad_d @ w_mean
         if self.layout.n_dr:

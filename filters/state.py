@@ -44,10 +44,10 @@ exact (linear in ``dr``) and estimated in flight: the in-flight part of the
 position calibration. With a forecast compensation the forecast's history holds
 their effect ``S G dr`` in full, so its loop returns it as it returns a bias and the
 features carry ``T S G dr`` (:meth:`filters.ekf.NavFilter.geometry_jacobian`). The
-block is present when the configuration gives a nonzero position uncertainty
-(``position_sigma_m``) and ``filter.position_states`` is on: where the motion
-keeps the scatter's channel error far below the noise (``ngnav simulate`` prints
-both; ``uav-survey``), the states have nothing to learn and are left out.
+block is present whenever the configuration declares a position uncertainty
+(``position_sigma_m`` > 0): a declared uncertainty is never dropped. Where the
+motion keeps the scatter's channel error far below the noise (``ngnav simulate``
+prints both; ``uav-survey``) the states learn little and stay near their prior.
 
 Why ``AOA``: an aircraft's velocity leaves its body x axis by the angle of
 attack, which its lift needs: it grows with load factor and falls with speed.

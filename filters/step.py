@@ -6,6 +6,7 @@ import numpy as np
 from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 
+from filters.algebra import shrink_to_size
 from filters.alignment import _gps_course
 from filters.forecast import (
     FORECAST_ERROR_BLOCKS,
@@ -72,8 +73,12 @@ class StepMixin:
             # The sensor-position states see the block's angular acceleration as
             # forecast from the *previous* blocks (the compensation's forecast, or a
             # smoothed history without one): this block's own noise would correlate
-            # the Jacobian with the rate measurement's noise and drag dr.
+            # the Jacobian with the rate measurement's noise and drag dr. Shrunk by its
+            # noise: on uav-survey that noise (0.013 rad/s^2) outweighs the rate terms
+            # (|w|^2 0.008 rad^2/s^2), and read as motion it made the 27 states and the
+            # attitude over-sure (docs/design.md, "the sensor positions' Jacobian").
             wd_sg = self._wd_smooth if phi_hat is None else phi_hat[0:3]
+            wd_sg = shrink_to_size(wd_sg, self.wdot_jacobian_var * (1.0 / kk))
             sg = nf.geometry_jacobian(wd_sg, nf.w + 0.5 * kk * dt * wd_sg)
             if p_bound is not None:
                 blk = slice(i0 + 1, i1 + 1)

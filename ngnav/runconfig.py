@@ -26,7 +26,7 @@ truth to separate files.
     [initial]      alignment = "static"|"config", static_s, roll_deg, pitch_deg,
                    yaw_deg, tilt_sigma_deg, heading_source = "config"|"gps",
                    heading_sigma_deg, rate_dps = [x, y, z], rate_sigma_dps
-    [filter]       rate_hz, fusion_lag_s, position_states
+    [filter]       rate_hz, fusion_lag_s
     [compensation] method, forecast_correction
     [vehicle]      kind = "free"|"fixed-wing", lift_k_m, lift_k_sigma_m, liftoff_speed_mps,
                    aoa_walk_deg_rts, body_velocity_error, remainder_updates,

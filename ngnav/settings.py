@@ -42,14 +42,10 @@ class FilterSettings:
         How far the fusion horizon trails the newest array sample on a stream, s
         (default 0.1): a GPS fix that arrives within it is fused at its time of
         validity, as offline; estimates trail the newest sample by it.
-    position_states : bool
-        Carry the calibration's residual sensor positions as filter states when
-        ``[calibration] position_sigma_m`` > 0 (default true).
     """
 
     rate_hz: float = 100.0
     fusion_lag_s: float = 0.1
-    position_states: bool = True
 
     def __post_init__(self) -> None:
         _number("filter.rate_hz", self.rate_hz, 1e-3, 1e5)
@@ -198,6 +194,8 @@ FIXED: dict[str, Any] = {
     "remainder_off_constraint": False,
     "position_consider": False,
     "remainder_consider": False,
+    # the sensor positions are states whenever [calibration] position_sigma_m > 0
+    "position_states": True,
 }
 FIXED_WING: dict[str, Any] = {
     "sideslip_sigma_deg": 3e-6,
@@ -221,6 +219,11 @@ def retired_key_message(key: str) -> str | None:
     if key in MOVED:
         section, new = MOVED[key]
         return f"filter.{key} is now {section}.{new}"
+    if key == "position_states":
+        return (
+            "filter.position_states is no longer a setting: a declared "
+            "[calibration] position_sigma_m is always carried as states"
+        )
     if key in FIXED:
         return f"filter.{key} is no longer a setting; it is {FIXED[key]!r}"
     if key == "forecast_error_persistence":
@@ -266,7 +269,7 @@ def migrate_legacy(data: dict, source: str) -> dict:
             )
     for key, fixed in FIXED.items():
         if key in flt and flt.pop(key) != fixed:
-            raise ValueError(f"{source}: filter.{key} is no longer a setting; it is {fixed!r}")
+            raise ValueError(f"{source}: {retired_key_message(key)}")
     models = [k for k in FREE if k in flt]
     if models:
         given = {k: flt.pop(k) for k in models}

@@ -598,18 +598,20 @@ def test_unknown_position_error_is_the_real_array_minus_the_calibrated_one(tacti
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
 
 
-def test_position_states_switch(tactical):
+def test_a_declared_position_scatter_is_always_carried(tactical):
+    """Sensor-position states exactly when the calibration declares their scatter."""
     from dataclasses import replace
 
     from filters.bench import _first_seconds
 
     samples, fixes = _first_seconds(tactical.samples, tactical.fixes, 3.0)
     on = run_filter(samples, fixes, tactical.config)
-    cfg = replace(tactical.config, filter=replace(tactical.config.filter, position_states=False))
+    cfg = replace(tactical.config, position_sigma_m=0.0)
     off = run_filter(samples, fixes, cfg)
     n_dr = 3 * tactical.config.layout.n_sensors
     assert tactical.config.position_sigma_m > 0
     assert on.state_size - off.state_size == n_dr
+    assert dict(on.final.state_blocks)["dr"] == n_dr and "dr" not in dict(off.final.state_blocks)
     assert np.all(np.isfinite(off.estimates.pos_ned_m))
 
 

@@ -138,7 +138,8 @@ def test_a_run_written_before_the_settings_were_grouped_still_reads(tmp_path):
     free = old.replace("sideslip_sigma_deg = 3e-06", "sideslip_sigma_deg = 0.0")
     with pytest.raises(ValueError, match=r"filter\.sideslip_sigma_deg is no longer a setting"):
         read_run_config_text(free, "old.toml")
-    for key, value in (("gate_probability", "0.99"), ("remainder_consider", "true")):
+    retired = (("gate_probability", "0.99"), ("remainder_consider", "true"))
+    for key, value in (*retired, ("position_states", "false")):
         bad = old.replace(f"{key} = ", f"{key} = {value}\n# ")
         with pytest.raises(ValueError, match=rf"old.toml: filter\.{key} is no longer a setting"):
             read_run_config_text(bad, "old.toml")
@@ -153,6 +154,7 @@ def test_a_run_written_before_the_settings_were_grouped_still_reads(tmp_path):
         ("filter.gps_gap_reset_s=3", "filter.gps_gap_reset_s is no longer a setting; it is 5.0"),
         ("filter.compensation=none", "filter.compensation is now compensation.method"),
         ("filter.sideslip_sigma_deg=0", 'vehicle.kind = "fixed-wing" has 3e-06'),
+        ("filter.position_states=false", "position_sigma_m is always carried as states"),
     ],
 )
 def test_an_override_of_an_old_key_says_what_became_of_it(override, says):

@@ -43,7 +43,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         f"unknown sensor positions ({sim.config.position_sigma_m * 1e3:g} mm 1-sigma): channel "
         f"error {np.sqrt(np.mean(e_pos**2)):.1f} ug rms, {np.abs(e_pos).max():.1f} ug at most, "
         f"beside {noise:.0f} ug of noise per sample; filter position states "
-        f"{'on' if sim.config.filter.position_states and sim.config.position_sigma_m > 0 else 'off'}"
+        f"{'on' if sim.config.position_sigma_m > 0 else 'off'}"
     )
     if args.stream is not None:
         from telemetry.inputs import input_frames

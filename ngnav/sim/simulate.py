@@ -74,7 +74,7 @@ class SimulatedRun:
         ``dr_i`` the real position minus the calibrated one (the scatter the
         filter's ``DR`` states model) and ``theta_i`` the real sensing axis. Set
         beside the channel noise and bias it says whether a flight makes the
-        scatter worth carrying as states (``filter.position_states``).
+        scatter visible (the filter carries it as states whenever it is declared).
         """
         nominal = self.config.layout
         dr = self.true_errors.position_error_b_m - self.config.known_errors.position_error_b_m
