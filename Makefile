@@ -1,5 +1,6 @@
 # Two entry points that work on a fresh machine with only Python 3:
-#   make run   - create .venv on first use, install, run the paper reproduction
+#   make run   - create .venv on first use, install, run the demo (ngnav demo: Table 1,
+#                a simulated flight through the filter beside its bound, its report)
 #   make test  - create .venv on first use, install, lint and run all tests
 PY ?= python3
 VENV := .venv
@@ -15,7 +16,7 @@ $(STAMP): pyproject.toml requirements.lock
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/ngnav paper
+	$(BIN)/ngnav demo --out demo
 
 test: $(STAMP)
 	$(BIN)/ruff check ngnav filters telemetry studies tests

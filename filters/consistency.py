@@ -303,8 +303,25 @@ def consistency(
     many seconds (:func:`nees_profile`).
     ``target`` is the target's verdict on ``blocks`` (:func:`target_verdict`).
     """
+    return consistency_series(scn, runs, method, workers, progress, profile_s, from_s)[0]
+
+
+def consistency_series(
+    scn: FlightScenario,
+    runs: int,
+    method: str | None = None,
+    workers: int = 2,
+    progress: bool = False,
+    profile_s: float | None = None,
+    from_s: float | None = None,
+) -> tuple[dict, np.ndarray, dict[str, np.ndarray]]:
+    """:func:`consistency`'s report, the epochs' times (E,) and each NEES block's
+    per-epoch average over the runs (E,): what ``ngnav consistency --plot`` draws."""
     method = method or scn.compensation.method
     if runs < 1:
         raise ValueError(f"runs must be at least 1, got {runs}")
     results, diverged = monte_carlo_runs(scn, runs, method, workers, progress)
-    return summarise_runs(scn.name, method, results, diverged, profile_s, from_s)[0]
+    if not results:
+        raise ValueError(f"every one of the {runs} runs diverged: nothing to average")
+    out, averages = summarise_runs(scn.name, method, results, diverged, profile_s, from_s)
+    return out, results[0]["t_s"], averages

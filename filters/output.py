@@ -16,6 +16,10 @@ path, deg), or empty (NaN) when the filter does not carry it.
 The attitude's uncertainty is given as the 1-sigma of the NED rotation-vector
 error (``q_true = exp(dtheta) * q_est``), not per quaternion component; for
 small tilt ``att_n``, ``att_e``, ``att_d`` are roll, pitch and yaw.
+
+Beside it ``ngnav run`` writes ``estimates.nis.csv`` (:func:`nis_path`), one row per
+GPS fix the filter saw: ``t_s, nis_pos, nis_vel, pos_accepted, vel_accepted`` (the
+innovations' NIS, 3 dof each, before the update; 1/0 whether each passed its gate).
 """
 
 from __future__ import annotations
@@ -25,10 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from ngnav.geodesy import WGS84_A_M, WGS84_E2, LocalTangentPlane
-from ngnav.records import Estimates
+from ngnav.records import Estimates, GpsInnovations
 from ngnav.rotation import euler_from_quat
 from ngnav.runconfig import RunConfig
-from ngnav.runio import NAV_COLUMNS
+from ngnav.runio import NAV_COLUMNS, read_table
 
 ESTIMATE_COLUMNS: tuple[str, ...] = (
     "t_s",
@@ -57,6 +61,10 @@ ESTIMATE_COLUMNS: tuple[str, ...] = (
     "aoa_deg",
     "aoa_deg_sigma",
 )
+
+
+#: The 1-sigma columns of the 12 navigation errors, in the state's order.
+NAV_SIGMA_COLUMNS: tuple[str, ...] = ESTIMATE_COLUMNS[20:32]
 
 
 def estimates_table(est: Estimates, cfg: RunConfig) -> np.ndarray:
@@ -106,4 +114,76 @@ def write_estimates_csv(path: str | Path, est: Estimates, cfg: RunConfig) -> Non
         header=",".join(ESTIMATE_COLUMNS),
         comments="",
         fmt=fmt,
+    )
+
+
+def read_estimates_csv(path: str | Path) -> Estimates:
+    """Read an ``estimates.csv`` back as :class:`Estimates`.
+
+    The file keeps each block's 1-sigma, not its correlations: ``cov_nav`` is the
+    diagonal ``sigma^2`` (position, velocity, NED attitude, rate). A missing column
+    or a bad cell is a ``ValueError`` naming it.
+    """
+    header, data = read_table(Path(path), ESTIMATE_COLUMNS)
+    col = {name: data[:, header.index(name)] for name in ESTIMATE_COLUMNS}
+    if data.shape[0] == 0:
+        raise ValueError(f"{path}: no estimates")
+
+    def stack(*names: str) -> np.ndarray:
+        return np.column_stack([col[n] for n in names])
+
+    sig = stack(*NAV_SIGMA_COLUMNS)
+    cov = np.zeros((data.shape[0], 12, 12))
+    idx = np.arange(12)
+    cov[:, idx, idx] = sig * sig
+    aoa = col["aoa_deg"]
+    has_aoa = bool(np.any(np.isfinite(aoa)))
+    return Estimates(
+        col["t_s"],
+        stack("n_m", "e_m", "d_m"),
+        stack("vn_mps", "ve_mps", "vd_mps"),
+        stack("qw", "qx", "qy", "qz"),
+        stack("wx_radps", "wy_radps", "wz_radps"),
+        np.zeros((data.shape[0], 0)),
+        cov,
+        aoa_rad=np.deg2rad(aoa) if has_aoa else None,
+        aoa_sigma_rad=np.deg2rad(col["aoa_deg_sigma"]) if has_aoa else None,
+    )
+
+
+#: Columns of ``estimates.nis.csv``.
+NIS_COLUMNS: tuple[str, ...] = ("t_s", "nis_pos", "nis_vel", "pos_accepted", "vel_accepted")
+
+
+def nis_path(estimates_path: str | Path) -> Path:
+    """Where the GPS fixes' NIS go beside an estimates file: ``NAME.nis.csv``."""
+    p = Path(estimates_path)
+    return p.with_name(p.stem + ".nis.csv")
+
+
+def write_nis_csv(path: str | Path, inn: GpsInnovations) -> None:
+    """Write the GPS fixes' NIS and gate decisions (see the module docstring)."""
+    rows = np.column_stack(
+        [inn.t_s, inn.nis_pos, inn.nis_vel, inn.pos_accepted, inn.vel_accepted]
+    ).reshape(-1, len(NIS_COLUMNS))
+    np.savetxt(
+        Path(path),
+        rows,
+        delimiter=",",
+        header=",".join(NIS_COLUMNS),
+        comments="",
+        fmt=["%.6f", "%.6g", "%.6g", "%d", "%d"],
+    )
+
+
+def read_nis_csv(path: str | Path) -> GpsInnovations:
+    """Read ``estimates.nis.csv`` back as :class:`GpsInnovations`."""
+    header, data = read_table(Path(path), NIS_COLUMNS)
+    col = {name: data[:, header.index(name)] for name in NIS_COLUMNS}
+    return GpsInnovations(
+        col["t_s"],
+        col["nis_pos"],
+        col["nis_vel"],
+        col["pos_accepted"] > 0.5,
+        col["vel_accepted"] > 0.5,
     )

@@ -81,7 +81,7 @@ class ReadReport:
             self.counts[kind] = self.counts.get(kind, 0) + n
 
 
-def _read_table(path: Path, required: tuple[str, ...]) -> tuple[list[str], np.ndarray]:
+def read_table(path: Path, required: tuple[str, ...]) -> tuple[list[str], np.ndarray]:
     """Header and float data (rows, cols) of a CSV; empty cells become NaN."""
     if not path.is_file():
         raise ValueError(f"{path}: no such file")
@@ -162,7 +162,7 @@ def read_array_csv(path: str | Path, n_channels: int) -> tuple[ArraySamples, Rea
     """Read ``array.csv`` for a layout of ``n_channels`` channels (see module docstring)."""
     p = Path(path)
     cols = ("t_s", *(f"a{i + 1}_mps2" for i in range(n_channels)))
-    header, data = _read_table(p, cols)
+    header, data = read_table(p, cols)
     extra = [h for h in header if h.startswith("a") and h.endswith("_mps2") and h not in cols]
     if extra:
         raise ValueError(f"{p}: column {extra[0]!r} beyond the layout's {n_channels} channels")
@@ -198,7 +198,7 @@ def read_array_csv(path: str | Path, n_channels: int) -> tuple[ArraySamples, Rea
 def read_gps_csv(path: str | Path) -> tuple[GpsFixes, ReadReport]:
     """Read ``gps.csv`` (see module docstring); rows without a fix are skipped and counted."""
     p = Path(path)
-    header, data = _read_table(p, GPS_COLUMNS)
+    header, data = read_table(p, GPS_COLUMNS)
     report = ReadReport(str(p), rows=data.shape[0])
     col = {h: data[:, header.index(h)] for h in header}
     t = col["t_s"]
@@ -288,7 +288,7 @@ def write_truth_csv(path: str | Path, truth: FlightTruth) -> None:
 def read_truth_csv(path: str | Path) -> FlightTruth:
     """Read ``truth.csv``."""
     p = Path(path)
-    header, data = _read_table(p, TRUTH_COLUMNS)
+    header, data = read_table(p, TRUTH_COLUMNS)
     c = [header.index(h) for h in TRUTH_COLUMNS]
     d = data[:, c]
     _check_times(p, d[:, 0])

@@ -63,7 +63,7 @@ def flight_scenario(args: argparse.Namespace):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ngnav.cli import assess, bench, flight, paper
+    from ngnav.cli import assess, bench, demo, flight, paper, plot
     from ngnav.cli.stream import add_stream_parser
 
     parser = argparse.ArgumentParser(
@@ -71,10 +71,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"ngnav {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    demo.add_parsers(sub)
     paper.add_parsers(sub)
     flight.add_parsers(sub)
     add_stream_parser(sub, add_flight_args)
     assess.add_parsers(sub)
+    plot.add_parsers(sub)
     bench.add_parsers(sub)
     return parser
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+from pathlib import Path
 
 from ngnav.cli import add_flight_args, flight_scenario
 
@@ -108,10 +110,10 @@ def print_profile(rows: list[dict]) -> None:
 
 
 def cmd_consistency(args: argparse.Namespace) -> int:
-    from filters.consistency import consistency
+    from filters.consistency import consistency_series
 
     scn = flight_scenario(args)
-    out = consistency(
+    out, t_s, averages = consistency_series(
         scn,
         args.runs,
         args.method,
@@ -120,6 +122,14 @@ def cmd_consistency(args: argparse.Namespace) -> int:
         profile_s=args.profile,
         from_s=args.from_s,
     )
+    if args.plot:
+        from ngnav.plots import plot_nees
+
+        blocks = out["blocks"]
+        bounds = {n: (blocks[f"NEES {n}"]["lower"], blocks[f"NEES {n}"]["upper"]) for n in averages}
+        title = f"{out['scenario']}: NEES averaged over {out['runs']} runs ({out['method']})"
+        path = plot_nees(t_s, averages, bounds, Path(args.plot) / "nees.png", title)
+        print(f"NEES figure -> {path}", file=sys.stderr if args.json else sys.stdout)
     if args.json:
         print(json.dumps(out, indent=2))
         return 0
@@ -177,4 +187,7 @@ def add_parsers(sub) -> None:
     )
     add_flight_args(p)
     add_consistency_args(p)
+    p.add_argument(
+        "--plot", metavar="DIR", help="also draw each NEES block against its band: DIR/nees.png"
+    )
     p.set_defaults(func=cmd_consistency)

@@ -33,6 +33,19 @@ def cmd_paper(args: argparse.Namespace) -> int:
     scn = load_tilt_table(args.scenario, args.overrides)
     methods = tuple(args.methods.split(",")) if args.methods else METHODS
     res = run_paper(scn, methods=methods, progress=_progress(not args.json and sys.stderr.isatty()))
+    if args.plot:
+        from pathlib import Path
+
+        from ngnav.plots import plot_paper_table
+
+        series = {
+            "paper measured": res.paper.measured_deg,
+            "paper compensated": res.paper.compensated_deg,
+            **{m: np.array([t.angle_deg[m] for t in res.turns]) for m in methods},
+        }
+        platform = np.array([t.platform_deg for t in res.turns])
+        path = plot_paper_table(platform, series, Path(args.plot) / "table1.png")
+        print(f"Table 1 figure -> {path}", file=sys.stderr if args.json else sys.stdout)
     if args.json:
         out = {
             "scenario": scn.name,
@@ -130,6 +143,7 @@ def add_parsers(sub) -> None:
     add_scenario_args(p)
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.add_argument("--methods", help="comma-separated subset of none,gm11,last,line,oracle")
+    p.add_argument("--plot", metavar="DIR", help="also draw Table 1: DIR/table1.png")
     p.set_defaults(func=cmd_paper)
 
     p = sub.add_parser("grey", help="fit GM(1,1) to a sequence and forecast")
