@@ -19,7 +19,9 @@ small tilt ``att_n``, ``att_e``, ``att_d`` are roll, pitch and yaw.
 
 Beside it ``ngnav run`` writes ``estimates.nis.csv`` (:func:`nis_path`), one row per
 GPS fix the filter saw: ``t_s, nis_pos, nis_vel, pos_accepted, vel_accepted`` (the
-innovations' NIS, 3 dof each, before the update; 1/0 whether each passed its gate).
+innovations' NIS, 3 dof each, before the update; 1/0 whether each passed its gate), and
+``estimates.npz`` (:func:`write_estimates_npz`): the same epochs with their full
+navigation covariance, and the last epoch's whole error state.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ngnav.geodesy import WGS84_A_M, WGS84_E2, LocalTangentPlane
-from ngnav.records import Estimates, GpsInnovations
+from ngnav.records import Estimates, GpsInnovations, NavEstimate, RunResult
 from ngnav.rotation import euler_from_quat
 from ngnav.runconfig import RunConfig
 from ngnav.runio import NAV_COLUMNS, read_table
@@ -187,3 +189,96 @@ def read_nis_csv(path: str | Path) -> GpsInnovations:
         col["pos_accepted"] > 0.5,
         col["vel_accepted"] > 0.5,
     )
+
+
+#: Format version of ``estimates.npz`` (bumped when a key changes meaning).
+NPZ_VERSION = 1
+
+
+def npz_path(estimates_path: str | Path) -> Path:
+    """Where the binary estimates go beside an estimates file: ``NAME.npz``."""
+    return Path(estimates_path).with_suffix(".npz")
+
+
+def write_estimates_npz(path: str | Path, res: RunResult) -> None:
+    """Write ``estimates.npz``: every epoch with its full 12 x 12 navigation covariance,
+    and the last epoch's whole error state with its covariance (compressed numpy arrays).
+
+    Keys: ``t_s`` (E,), ``pos_ned_m``, ``vel_ned_mps``, ``omega_b_rps`` (E, 3),
+    ``q_nb`` (E, 4), ``bias`` (E, k), ``cov_nav`` (E, 12, 12) (position m, velocity m/s,
+    NED attitude rad, rate rad/s, with their correlations), ``aoa_rad`` and
+    ``aoa_sigma_rad`` (E,) when carried; the last epoch's ``final_cov`` (n, n) in the
+    order of ``final_blocks`` (names) and ``final_dofs``, with ``final_dr_m`` and
+    ``final_aoa_states`` when carried; ``version``. Read it with
+    :func:`read_estimates_npz`.
+    """
+    est = res.estimates
+    arrays = {
+        "version": np.array(NPZ_VERSION),
+        "t_s": est.t_s,
+        "pos_ned_m": est.pos_ned_m,
+        "vel_ned_mps": est.vel_ned_mps,
+        "q_nb": est.q_nb,
+        "omega_b_rps": est.omega_b_rps,
+        "bias": est.bias,
+        "cov_nav": est.cov_nav,
+    }
+    if est.aoa_rad is not None:
+        arrays["aoa_rad"] = est.aoa_rad
+        arrays["aoa_sigma_rad"] = est.aoa_sigma_rad
+    fin = res.final
+    if fin is not None:
+        arrays["final_cov"] = fin.cov
+        arrays["final_blocks"] = np.array([name for name, _ in fin.state_blocks])
+        arrays["final_dofs"] = np.array([dof for _, dof in fin.state_blocks])
+        for key, value in (("final_dr_m", fin.dr_m), ("final_aoa_states", fin.aoa_states)):
+            if value is not None:
+                arrays[key] = value
+    np.savez_compressed(Path(path), **arrays)
+
+
+def read_estimates_npz(path: str | Path) -> tuple[Estimates, NavEstimate | None]:
+    """Read ``estimates.npz`` (:func:`write_estimates_npz`): the epochs as
+    :class:`Estimates` (full navigation covariance), and the last epoch as a
+    :class:`NavEstimate` with the whole state's covariance (None if the file has none)."""
+    p = Path(path)
+    try:
+        data = np.load(p, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{p}: not an estimates file ({exc})") from None
+    with data:
+        if "version" not in data.files or int(data["version"]) != NPZ_VERSION:
+            raise ValueError(f"{p}: not an ngnav estimates file of version {NPZ_VERSION}")
+        get = {k: data[k] for k in data.files}
+    est = Estimates(
+        get["t_s"],
+        get["pos_ned_m"],
+        get["vel_ned_mps"],
+        get["q_nb"],
+        get["omega_b_rps"],
+        get["bias"],
+        get["cov_nav"],
+        aoa_rad=get.get("aoa_rad"),
+        aoa_sigma_rad=get.get("aoa_sigma_rad"),
+    )
+    if "final_cov" not in get:
+        return est, None
+    blocks = tuple(
+        (str(n), int(d)) for n, d in zip(get["final_blocks"], get["final_dofs"], strict=True)
+    )
+    aoa = None if est.aoa_rad is None else (float(est.aoa_rad[-1]), float(est.aoa_sigma_rad[-1]))
+    final = NavEstimate(
+        float(est.t_s[-1]),
+        est.pos_ned_m[-1],
+        est.vel_ned_mps[-1],
+        est.q_nb[-1],
+        est.omega_b_rps[-1],
+        est.bias[-1],
+        get["final_cov"],
+        aoa_rad=None if aoa is None else aoa[0],
+        aoa_sigma_rad=None if aoa is None else aoa[1],
+        state_blocks=blocks,
+        dr_m=get.get("final_dr_m"),
+        aoa_states=get.get("final_aoa_states"),
+    )
+    return est, final

@@ -24,6 +24,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from filters.evaluate import ErrorSummary, RunErrors, nees, run_errors, summarise
+from filters.output import read_estimates_csv as _read_csv
+from filters.output import read_estimates_npz as _read_npz
 from filters.pipeline import Pipeline, run_filter
 from ngnav.errors import CovarianceError, LostTrackError
 from ngnav.records import ArraySamples, Estimates, FlightTruth, GpsFixes, NavEstimate, RunResult
@@ -50,6 +52,7 @@ __all__ = [
     "errors",
     "nees",
     "pipeline_factory",
+    "read_estimates",
     "read_run",
     "run",
     "simulate",
@@ -129,6 +132,20 @@ def read_run(path: str | Path) -> RunInputs:
     counts what reading skipped.
     """
     return _read_run(path)
+
+
+def read_estimates(path: str | Path) -> tuple[Estimates, NavEstimate | None]:
+    """Read what ``ngnav run`` wrote: ``estimates.npz`` or ``estimates.csv``.
+
+    Returns the epochs as :class:`Estimates` and the last epoch with the whole error
+    state's covariance (:class:`NavEstimate`). From the ``.npz`` the navigation
+    covariance is full (with its correlations); from the ``.csv`` it is the diagonal
+    of the sigmas the file keeps, and there is no last-epoch record (None).
+    """
+    p = Path(path)
+    if p.suffix == ".npz":
+        return _read_npz(p)
+    return _read_csv(p), None
 
 
 def write_run(path: str | Path, samples: ArraySamples, fixes: GpsFixes, config: RunConfig) -> Path:

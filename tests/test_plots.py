@@ -126,3 +126,36 @@ def test_demo_shows_the_whole_chain(tmp_path):
     report = tmp_path / "demo" / "run" / "plots" / "report.html"
     assert f"Open {report} in a browser." in out
     _assert_image_with_content(tmp_path / "demo" / "paper" / "table1.png")
+
+
+def test_the_binary_estimates_keep_the_full_covariance(tmp_path):
+    from filters.output import npz_path, write_estimates_npz
+    from ngnav import api
+
+    sim = simulate_flight(load_flight("tactical", [SHORT]), 0)
+    res = run_filter(sim.samples, sim.fixes, sim.config)
+    path = npz_path(tmp_path / "estimates.csv")
+    assert path.name == "estimates.npz"
+    write_estimates_npz(path, res)
+    est, fin = api.read_estimates(path)
+    np.testing.assert_array_equal(est.cov_nav, res.estimates.cov_nav)  # bit for bit
+    np.testing.assert_array_equal(est.q_nb, res.estimates.q_nb)
+    np.testing.assert_array_equal(est.aoa_sigma_rad, res.estimates.aoa_sigma_rad)
+    assert np.count_nonzero(est.cov_nav[-1][0:3, 3:6])  # correlations, not only sigmas
+    np.testing.assert_array_equal(fin.cov, res.final.cov)
+    assert fin.state_blocks == res.final.state_blocks
+    np.testing.assert_array_equal(fin.block_cov("dr"), res.final.block_cov("dr"))
+    np.testing.assert_array_equal(fin.dr_m, res.final.dr_m)
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match=r"bad\.npz: not an estimates file"):
+        api.read_estimates(tmp_path / "bad.npz")
+
+
+def test_ngnav_run_writes_the_binary_estimates(plotted):
+    from ngnav import api
+
+    run, _ = plotted
+    est, fin = api.read_estimates(run / "estimates.npz")
+    csv_est, _ = api.read_estimates(run / "estimates.csv")
+    np.testing.assert_allclose(est.pos_ned_m, csv_est.pos_ned_m, rtol=1e-5, atol=1e-5)
+    assert fin.cov.shape[0] == sum(d for _, d in fin.state_blocks) > 12

@@ -67,7 +67,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from filters.evaluate import run_errors, summarise
-    from filters.output import nis_path, write_estimates_csv, write_nis_csv
+    from filters.output import (
+        nis_path,
+        npz_path,
+        write_estimates_csv,
+        write_estimates_npz,
+        write_nis_csv,
+    )
     from filters.pipeline import run_filter
     from ngnav.api import pipeline_factory
     from ngnav.cli.stream import run_to_tlog
@@ -105,6 +111,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         reports = {str(src): rr.counts}
         write_estimates_csv(out, res.estimates, cfg)
         write_nis_csv(nis_path(out), res.innovations)
+        write_estimates_npz(npz_path(out), res)
         print(f"run {src}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
     else:
         inp = read_run(src)
@@ -119,6 +126,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             res, failure = exc.partial, str(exc)
         write_estimates_csv(out, res.estimates, cfg)
         write_nis_csv(nis_path(out), res.innovations)
+        write_estimates_npz(npz_path(out), res)
         print(f"run {src}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
     _print_reports(reports)
     _print_counts(res.counts)
