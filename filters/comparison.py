@@ -73,16 +73,22 @@ def _gps_only_errors(sim: SimulatedRun, t_out: np.ndarray) -> RunErrors:
 
 
 def evaluate_scenario(
-    scn: FlightScenario, run_index: int = 0, configurations: tuple[str, ...] = CONFIGURATIONS
+    scn: FlightScenario,
+    run_index: int = 0,
+    configurations: tuple[str, ...] = CONFIGURATIONS,
+    progress: bool = False,
 ) -> dict:
-    """Errors of each configuration on one simulated run, with the bound and event checks."""
+    """Errors of each configuration on one simulated run, with the bound and event checks
+    (``progress``: a bar over the configurations on stderr)."""
+    from tqdm import tqdm
+
     sim = simulate_flight(scn, run_index)
     rows = []
     main = None
     t_ref = None
     # every configuration's errors, and the partial ones of a diverged configuration
     errors: dict[str, RunErrors] = {}
-    for name in configurations:
+    for name in tqdm(configurations, desc="evaluate", unit="run", disable=not progress):
         if name == "gps-alone":
             continue
         try:

@@ -12,6 +12,7 @@ to each run's record), :func:`block_series`, :func:`summarise_block`,
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 
@@ -86,37 +87,37 @@ def monte_carlo_runs(
     workers: int = 2,
     progress: bool = False,
     extras: RunExtras | None = None,
+    scheduler: str | None = None,
 ) -> tuple[list[dict], list[dict]]:
-    """Runs ``0 .. runs - 1`` (:func:`one_run`) on ``workers`` dask processes (1: here).
+    """Runs ``0 .. runs - 1`` (:func:`one_run`) as a campaign (:func:`ngnav.campaign.run_campaign`:
+    ``workers`` local processes, 1 here, or the dask cluster at ``scheduler``).
 
     Returns the records of the runs that did not diverge, in run order, and the
-    diverged ones as ``{"run", "reason"}``. Raises RuntimeError when every run
-    diverged or the runs' epochs differ (they cannot be averaged).
+    diverged or failed ones as ``{"run", "reason"}``. Raises ValueError when no run
+    finished or the runs' epochs differ (they cannot be averaged).
     """
-    import dask
-    from tqdm import tqdm
+    from ngnav.campaign import run_campaign
 
-    results: list[dict] = []
-    bar = tqdm(total=runs, desc=f"consistency {method}", disable=not progress, unit="run")
-    chunk = max(1, workers)
-    for start in range(0, runs, chunk):
-        tasks = [
-            dask.delayed(one_run)(scn, i, method, extras)
-            for i in range(start, min(runs, start + chunk))
-        ]
-        if workers > 1:
-            results += dask.compute(*tasks, scheduler="processes", num_workers=workers)
-        else:
-            results += dask.compute(*tasks, scheduler="synchronous")
-        bar.update(len(tasks))
-    bar.close()
-    diverged = [{"run": r["run"], "reason": r["diverged"]} for r in results if "diverged" in r]
-    results = [r for r in results if "diverged" not in r]
+    done: dict[int, dict] = {}
+    failures = run_campaign(
+        partial(one_run, scn, method=method, extras=extras),
+        range(runs),
+        done.__setitem__,
+        workers=workers,
+        scheduler=scheduler,
+        progress=progress,
+        desc=f"consistency {method}",
+    )
+    records = [done[i] for i in sorted(done)]
+    diverged = [{"run": r["run"], "reason": r["diverged"]} for r in records if "diverged" in r]
+    diverged += [{"run": f.run, "reason": f"failed: {f.error}"} for f in failures]
+    diverged.sort(key=lambda d: d["run"])
+    results = [r for r in records if "diverged" not in r]
     if not results:
-        raise RuntimeError(f"every Monte Carlo run diverged: {diverged}")
+        raise ValueError(f"no Monte Carlo run finished: {diverged}")
     lengths = {r["t_s"].shape[0] for r in results}
     if len(lengths) != 1:
-        raise RuntimeError("Monte Carlo runs produced different epochs; cannot average")
+        raise ValueError("Monte Carlo runs produced different epochs; cannot average")
     return results, diverged
 
 
@@ -287,12 +288,13 @@ def consistency(
     progress: bool = False,
     profile_s: float | None = None,
     from_s: float | None = None,
+    scheduler: str | None = None,
 ) -> dict:
     """NEES/NIS over ``runs`` Monte Carlo runs; share of epochs inside the 95 % bounds.
 
-    Runs execute in parallel with dask's process scheduler (``workers``
-    processes; 1 runs them in this process). Glitched fixes are left out of
-    the NIS (they are meant to fail it). A run whose covariance check fails
+    Runs execute as a campaign on dask.distributed (:func:`monte_carlo_runs`: ``workers``
+    local processes, 1 in this process, or the cluster at ``scheduler``). Glitched fixes
+    are left out of the NIS (they are meant to fail it). A run whose covariance check fails
     is listed under ``diverged`` and left out of the averages (``runs`` counts
     the runs averaged): a divergence is a result to report, not a crash.
     ``blocks`` holds each NEES block and NIS (:func:`summarise_block`).
@@ -303,7 +305,7 @@ def consistency(
     many seconds (:func:`nees_profile`).
     ``target`` is the target's verdict on ``blocks`` (:func:`target_verdict`).
     """
-    return consistency_series(scn, runs, method, workers, progress, profile_s, from_s)[0]
+    return consistency_series(scn, runs, method, workers, progress, profile_s, from_s, scheduler)[0]
 
 
 def consistency_series(
@@ -314,14 +316,13 @@ def consistency_series(
     progress: bool = False,
     profile_s: float | None = None,
     from_s: float | None = None,
+    scheduler: str | None = None,
 ) -> tuple[dict, np.ndarray, dict[str, np.ndarray]]:
     """:func:`consistency`'s report, the epochs' times (E,) and each NEES block's
     per-epoch average over the runs (E,): what ``ngnav consistency --plot`` draws."""
     method = method or scn.compensation.method
     if runs < 1:
         raise ValueError(f"runs must be at least 1, got {runs}")
-    results, diverged = monte_carlo_runs(scn, runs, method, workers, progress)
-    if not results:
-        raise ValueError(f"every one of the {runs} runs diverged: nothing to average")
+    results, diverged = monte_carlo_runs(scn, runs, method, workers, progress, scheduler=scheduler)
     out, averages = summarise_runs(scn.name, method, results, diverged, profile_s, from_s)
     return out, results[0]["t_s"], averages

@@ -226,6 +226,7 @@ def consistency_study(
     sets: int = 1,
     cycle_s: float | None = None,
     tails_s: float | None = None,
+    scheduler: str | None = None,
 ) -> dict:
     """:func:`filters.consistency.consistency`'s report with the study's additions.
 
@@ -254,7 +255,7 @@ def consistency_study(
     if cycle_s is not None and not (np.isfinite(cycle_s) and cycle_s > 0):
         raise ValueError(f"cycle must be a positive number of seconds, got {cycle_s}")
     results, diverged = monte_carlo_runs(
-        scn, runs * sets, method, workers, progress, extras=control_extras
+        scn, runs * sets, method, workers, progress, extras=control_extras, scheduler=scheduler
     )
     out, averages = summarise_runs(scn.name, method, results, diverged, profile_s, from_s)
     n = out["runs"]
@@ -340,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
 def _report(args) -> int:
     import json
 
-    from ngnav.cli import flight_scenario
+    from ngnav.cli import flight_scenario, show_progress
     from ngnav.cli.assess import (
         block_line,
         consistency_header,
@@ -354,12 +355,13 @@ def _report(args) -> int:
         args.runs,
         args.method,
         args.workers,
-        progress=not args.json,
+        progress=show_progress() and not args.json,
         profile_s=args.profile,
         from_s=args.from_s,
         reference=args.reference,
         sets=args.sets,
         cycle_s=args.cycle,
+        scheduler=args.scheduler,
         tails_s=args.tails,
     )
     if args.json:

@@ -1,10 +1,12 @@
 """The CLI as a real subprocess, and the paper-reproduction targets."""
 
 import json
+import subprocess
+import sys
 
 import pytest
 
-from tests.helpers import run_cli
+from tests.helpers import ROOT, run_cli
 
 
 def run(*args, check=True):
@@ -84,9 +86,88 @@ def test_a_free_body_runs_without_a_vehicle_model(tmp_path):
     run("simulate", "--scenario", "tactical", *sets, "--out", str(tmp_path / "run"))
     assert 'kind = "free"' in (tmp_path / "run" / "config.toml").read_text()
     out = run("run", str(tmp_path / "run")).stdout
-    assert "  sideslip updates: 0" in out and "  angle-of-attack updates: 0" in out
+    assert "vehicle models:" not in out and "sideslip" not in out  # no model update at all
+    assert "  GPS: gps fixes used " in out  # the summary shows what happened, in groups
     line = next(ln for ln in out.splitlines() if "against truth.csv" in ln)
     horiz = float(line.split("horizontal RMS ")[1].split(" m")[0])
     roll, pitch, _ = (float(x) for x in line.split("RMS ")[-1].split(" deg")[0].split("/"))
     # 10 Hz fixes of 1.5 m (per axis) and the array's tilt from GPS-held velocity
     assert horiz < 1.0 and roll < 2.0 and pitch < 2.0
+
+
+def test_the_run_summary_shows_counters_that_are_not_zero_in_groups():
+    from ngnav.cli.flight import count_lines
+
+    lines = count_lines(
+        {
+            "samples held (non-finite)": 3,
+            "gps fixes used": 600,
+            "gps positions rejected (gate)": 0,
+            "blocks": 10,
+            "sideslip updates": 0,
+            "zero-rate updates at rest": 5,
+            "something new": 2,
+        }
+    )
+    assert lines == [
+        "inputs: samples held (non-finite) 3",
+        "GPS: gps fixes used 600",
+        "array: blocks 10",
+        "rest: zero-rate updates at rest 5",
+        "filter: something new 2",
+    ]
+
+
+def _stderr_on_a_terminal(args, env):
+    """Run the CLI with stderr on a pseudo-terminal; what it drew there."""
+    import fcntl
+    import os
+    import pty
+    import struct
+    import termios
+
+    primary, secondary = pty.openpty()
+    # a terminal's size, 24 x 80 (a fresh pty has none, and a bar fits in 0 columns)
+    fcntl.ioctl(secondary, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "ngnav.cli", *args],
+            stdout=subprocess.PIPE,
+            stderr=secondary,
+            cwd=ROOT,
+            env=env,
+            timeout=600,
+        )
+        os.close(secondary)
+        chunks = []
+        while True:
+            try:
+                data = os.read(primary, 65536)
+            except OSError:  # the terminal's other side is closed: all read
+                break
+            if not data:
+                break
+            chunks.append(data)
+    finally:
+        os.close(primary)
+    assert proc.returncode == 0
+    return b"".join(chunks).decode(errors="replace")
+
+
+def test_progress_is_drawn_on_a_terminal_and_not_in_ci_or_a_pipe(tmp_path):
+    import os
+
+    d = tmp_path / "run"
+    run("simulate", "--scenario", "tactical", "--set", "run.rate_hz=200", "--out", str(d))
+    env = {k: v for k, v in os.environ.items() if k != "CI"}
+    drawn = _stderr_on_a_terminal(["run", str(d)], env)
+    assert "filter: 100%" in drawn
+    assert _stderr_on_a_terminal(["run", str(d)], {**env, "CI": "true"}) == ""
+    piped = subprocess.run(
+        [sys.executable, "-m", "ngnav.cli", "run", str(d)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env=env,
+    )
+    assert piped.returncode == 0 and piped.stderr == ""

@@ -11,6 +11,7 @@ MAVLink output options), :mod:`ngnav.cli.assess` (``evaluate``, ``consistency``)
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 
@@ -60,6 +61,33 @@ def flight_scenario(args: argparse.Namespace):
     if not is_flight_scenario(args.scenario):
         raise ValueError(f"scenario {args.scenario!r} is not a flight (it has no [flight] section)")
     return load_flight(args.scenario, args.overrides)
+
+
+def show_progress() -> bool:
+    """Whether to draw progress bars: only for a person watching stderr (a terminal, and
+    not CI, whose runners set ``CI``); piped or logged output stays clean."""
+    return sys.stderr.isatty() and not os.environ.get("CI")
+
+
+class FractionBar:
+    """A tqdm bar on stderr driven by the fraction done (0-1), as ``run_filter`` reports it;
+    nothing is drawn unless :func:`show_progress`. Use as a context manager."""
+
+    def __init__(self, desc: str) -> None:
+        from tqdm import tqdm
+
+        self._bar = tqdm(total=100, desc=desc, unit="%", disable=not show_progress())
+
+    def __call__(self, fraction: float) -> None:
+        done = min(100, int(100 * fraction))
+        if done > self._bar.n:
+            self._bar.update(done - self._bar.n)
+
+    def __enter__(self) -> FractionBar:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._bar.close()
 
 
 def build_parser() -> argparse.ArgumentParser:

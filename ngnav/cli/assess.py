@@ -13,7 +13,7 @@ import json
 import sys
 from pathlib import Path
 
-from ngnav.cli import add_flight_args, flight_scenario
+from ngnav.cli import add_flight_args, flight_scenario, show_progress
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -22,7 +22,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from filters.comparison import evaluate_scenario, summary_dict
 
     scn = flight_scenario(args)
-    out = evaluate_scenario(scn, args.run_index)
+    out = evaluate_scenario(scn, args.run_index, progress=show_progress() and not args.json)
     if args.json:
         print(json.dumps({**out, "rows": [summary_dict(r) for r in out["rows"]]}, indent=2))
         return 0
@@ -90,7 +90,8 @@ def print_run_summary(out: dict) -> None:
     """The median attitude RMS over the runs and each diverged run."""
     print(f"  median attitude RMS over runs: {out['att_rms_deg_median']:.3f} deg")
     for d in out["diverged"]:
-        print(f"  run {d['run']} diverged and is left out: {d['reason']}")
+        what = "" if d["reason"].startswith("failed:") else "diverged: "
+        print(f"  run {d['run']} is left out: {what}{d['reason']}")
 
 
 def print_profile(rows: list[dict]) -> None:
@@ -118,9 +119,10 @@ def cmd_consistency(args: argparse.Namespace) -> int:
         args.runs,
         args.method,
         args.workers,
-        progress=not args.json,
+        progress=show_progress() and not args.json,
         profile_s=args.profile,
         from_s=args.from_s,
+        scheduler=args.scheduler,
     )
     if args.plot:
         from ngnav.plots import plot_nees
@@ -153,7 +155,15 @@ def add_consistency_args(p: argparse.ArgumentParser) -> None:
     """The options of ``ngnav consistency`` (``python -m studies.consistency`` adds its own)."""
     p.add_argument("--runs", type=int, default=50)
     p.add_argument(
-        "--workers", type=int, default=2, help="dask worker processes (default: %(default)s)"
+        "--workers",
+        type=int,
+        default=2,
+        help="worker processes of a local dask cluster; 1 runs here (default: %(default)s)",
+    )
+    p.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:8786",
+        help="run on an existing dask cluster (its workers need ngnav installed)",
     )
     p.add_argument("--method", choices=["gm11", "none", "line", "last", "oracle"])
     p.add_argument(

@@ -8,12 +8,44 @@ import sys
 
 import numpy as np
 
-from ngnav.cli import EXIT_DIVERGED, add_flight_args, flight_scenario
+from ngnav.cli import EXIT_DIVERGED, FractionBar, add_flight_args, flight_scenario
+
+#: The run summary's groups: a counter goes to the first group one of whose prefixes it
+#: starts with (the rest to "filter").
+COUNT_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    (
+        "inputs",
+        (
+            "samples held",
+            "samples before",
+            "gps fixes outside",
+            "gps fixes before",
+            "gps fixes later",
+        ),
+    ),
+    ("GPS", ("gps ",)),
+    ("array", ("blocks", "samples used", "rate updates", "grey forecasts")),
+    ("vehicle models", ("sideslip", "angle-of-attack", "vehicle-model")),
+    ("rest", ("zero-rate",)),
+    ("recovery", ("heading resets", "attitude reopened")),
+)
+
+
+def count_lines(counts: dict[str, int]) -> list[str]:
+    """The counters that are not zero, one line per group (:data:`COUNT_GROUPS`)."""
+    groups: dict[str, list[str]] = {}
+    for key, value in counts.items():
+        if not value:
+            continue
+        group = next((g for g, pre in COUNT_GROUPS if key.startswith(pre)), "filter")
+        groups.setdefault(group, []).append(f"{key} {value}")
+    order = [g for g, _ in COUNT_GROUPS] + ["filter"]
+    return [f"{g}: {', '.join(groups[g])}" for g in order if g in groups]
 
 
 def _print_counts(counts: dict[str, int], indent: str = "  ") -> None:
-    for k, v in counts.items():
-        print(f"{indent}{k}: {v}")
+    for line in count_lines(counts):
+        print(f"{indent}{line}")
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -59,8 +91,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def _print_reports(reports: dict[str, dict[str, int]]) -> None:
     for src, counts in reports.items():
-        print(f"  {src}:")
-        _print_counts(counts, "    ")
+        told = [f"{k} {v}" for k, v in counts.items() if v]
+        if told:
+            print(f"  {src}: {', '.join(told)}")
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -117,9 +150,15 @@ def cmd_run(args: argparse.Namespace) -> int:
         inp = read_run(src)
         cfg, reports = inp.config, inp.reports
         try:
-            res = run_filter(
-                inp.samples, inp.fixes, cfg, compensation=args.compensation, use_gps=not args.no_gps
-            )
+            with FractionBar("filter") as bar:
+                res = run_filter(
+                    inp.samples,
+                    inp.fixes,
+                    cfg,
+                    compensation=args.compensation,
+                    use_gps=not args.no_gps,
+                    progress=bar,
+                )
         except CovarianceError as exc:
             if exc.partial is None:
                 raise

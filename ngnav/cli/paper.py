@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 
-from ngnav.cli import add_scenario_args
+from ngnav.cli import add_scenario_args, show_progress
 
 
 def _progress(enabled: bool):
@@ -32,7 +32,7 @@ def cmd_paper(args: argparse.Namespace) -> int:
 
     scn = load_tilt_table(args.scenario, args.overrides)
     methods = tuple(args.methods.split(",")) if args.methods else METHODS
-    res = run_paper(scn, methods=methods, progress=_progress(not args.json and sys.stderr.isatty()))
+    res = run_paper(scn, methods=methods, progress=_progress(not args.json and show_progress()))
     if args.plot:
         from pathlib import Path
 
