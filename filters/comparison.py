@@ -103,7 +103,9 @@ def evaluate_scenario(
         errs = run_errors(res.estimates, sim.truth)
         errors[name] = errs
         bnd = (
-            bound_summary(res.estimates.bound_nav) if res.estimates.bound_nav is not None else None
+            bound_summary(res.estimates.bound_nav, q_nb=res.estimates.q_nb)
+            if res.estimates.bound_nav is not None
+            else None
         )
         rows.append(EvaluationRow(name, summarise(errs), bnd, res.counts))
         if name == "gm11":

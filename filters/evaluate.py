@@ -177,14 +177,40 @@ def summarise(errors: RunErrors, mask: np.ndarray | None = None) -> ErrorSummary
     )
 
 
-def bound_summary(cov: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
+def euler_variances(q_nb: np.ndarray, p_att: np.ndarray) -> np.ndarray:
+    """Variances (E, 3) of roll, pitch and yaw (ZYX Euler, rad^2) from the NED attitude
+    error's covariance ``p_att`` (E, 3, 3) at the attitudes ``q_nb`` (E, 4).
+
+    ``dtheta_ned = M [droll, dpitch, dyaw]`` with ``M = [Rz Ry e1, Rz e2, e3]`` (the
+    NED directions the three Euler angles turn about), so the angles' covariance is
+    ``M^-1 P M^-T``. Roll and pitch are the north and east errors only when the yaw is
+    zero: flying east, roll is the east error.
+    """
+    _, pitch, yaw = euler_from_quat(q_nb).T
+    cp, sp, cy, sy = np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+    m = np.zeros((q_nb.shape[0], 3, 3))
+    m[:, 0, 0], m[:, 1, 0], m[:, 2, 0] = cy * cp, sy * cp, -sp
+    m[:, 0, 1], m[:, 1, 1] = -sy, cy
+    m[:, 2, 2] = 1.0
+    m_inv = np.linalg.inv(m)
+    return np.einsum("eij,ejk,eik->ei", m_inv, p_att, m_inv)
+
+
+def bound_summary(
+    cov: np.ndarray, mask: np.ndarray | None = None, q_nb: np.ndarray | None = None
+) -> dict[str, float]:
     """RMS that a covariance sequence (E, 12, 12) predicts, in the summary's units.
 
-    Roll/pitch/yaw bounds use the NED attitude variances (north, east, down):
-    equal to roll, pitch, yaw for small tilt.
+    With the attitudes ``q_nb`` (E, 4) the roll/pitch/yaw bounds are the Euler angles'
+    (:func:`euler_variances`); without, the NED attitude variances (north, east, down),
+    which are roll, pitch and yaw only while the yaw is near zero.
     """
     m = np.ones(cov.shape[0], dtype=bool) if mask is None else mask
     d = np.einsum("eii->ei", cov[m])
+    att_rms_deg = float(np.rad2deg(np.sqrt(np.mean(d[:, 6:9].sum(axis=1)))))  # the NED error
+    if q_nb is not None:
+        d = d.copy()
+        d[:, 6:9] = euler_variances(q_nb[m], cov[m][:, 6:9, 6:9])
     return {
         "horiz_rms_m": float(np.sqrt(np.mean(d[:, 0] + d[:, 1]))),
         "vert_rms_m": float(np.sqrt(np.mean(d[:, 2]))),
@@ -193,5 +219,5 @@ def bound_summary(cov: np.ndarray, mask: np.ndarray | None = None) -> dict[str, 
         "pitch_rms_deg": float(np.rad2deg(np.sqrt(np.mean(d[:, 7])))),
         "yaw_rms_deg": float(np.rad2deg(np.sqrt(np.mean(d[:, 8])))),
         "rate_rms_dps": float(np.rad2deg(np.sqrt(np.mean(d[:, 9:12].sum(axis=1))))),
-        "att_rms_deg": float(np.rad2deg(np.sqrt(np.mean(d[:, 6:9].sum(axis=1))))),
+        "att_rms_deg": att_rms_deg,
     }

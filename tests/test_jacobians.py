@@ -750,3 +750,23 @@ def test_heading_check_gate_is_the_1_dof_quantile(side):
     d = np.sqrt(_target(1, side) * (nf.P[8, 8] + sigma**2))
     nf.q = quat_from_euler(0.0, 0.0, 0.3)
     assert nf.check_heading_against_course(0.3 - d, sigma) is (side > 0)
+
+
+def test_euler_variances_against_a_monte_carlo_of_the_attitude_error():
+    """Roll, pitch and yaw variances from the NED attitude covariance, checked by
+    perturbing the attitude with draws of the NED error and reading the Euler angles."""
+    from filters.evaluate import euler_variances
+    from ngnav.rotation import euler_from_quat, quat_from_euler, quat_from_rotvec, quat_multiply
+
+    rng = np.random.default_rng(7)
+    q = quat_from_euler(0.3, -0.2, np.deg2rad(100.0))  # flying east-ish, banked, nose down
+    a = rng.normal(size=(3, 3)) * 1e-3
+    p = a @ a.T + np.eye(3) * 1e-7
+    got = euler_variances(q[None, :], p[None, :, :])[0]
+    dth = rng.multivariate_normal(np.zeros(3), p, size=20000)
+    qs = quat_multiply(quat_from_rotvec(dth), np.broadcast_to(q, (dth.shape[0], 4)))
+    want = (euler_from_quat(qs) - euler_from_quat(q)).var(axis=0)
+    # 20000 draws: a sample variance is within 3 % (its relative sigma is sqrt(2 / n), 1 %)
+    np.testing.assert_allclose(got, want, rtol=0.03)
+    # flying east the roll is mostly the east error: the north variance alone is far off
+    assert abs(got[0] - p[0, 0]) > 0.2 * got[0]

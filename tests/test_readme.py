@@ -121,3 +121,21 @@ def test_validation_table_names_real_commands():
     known = _subcommands()
     assert {"paper", "run", "evaluate", "consistency"} <= known, sorted(known)
     assert named <= known, f"not ngnav sub-commands: {sorted(named - known)}"
+
+
+def test_the_design_page_names_where_each_constant_lives():
+    """Every UPPER_CASE constant the heuristics table names is defined in the module its
+    row names (a move that leaves the page behind fails here)."""
+    rows = [
+        ln.split("|")
+        for ln in (ROOT / "docs" / "design.md").read_text().splitlines()
+        if ln.startswith("| `") and "`filters/" in ln
+    ]
+    checked = 0
+    for cells in rows:
+        modules = re.findall(r"`(filters/[a-z_]+\.py)`", cells[3])
+        for name in re.findall(r"`([A-Z][A-Z0-9_]+)`", cells[1]):
+            text = "".join((ROOT / m).read_text() for m in modules)
+            assert re.search(rf"^{name}\b[^=\n]*=", text, re.M), (name, modules)
+            checked += 1
+    assert checked >= 25
