@@ -317,3 +317,56 @@ def run_config_text(cfg: RunConfig) -> str:
         lines += [f"{k} = {_fmt(v)}" for k, v in table.items()]
         lines.append("")
     return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class ArrayConfig:
+    """What a bench calibration needs of a ``config.toml``: ``[array]``, ``[sensor]`` and,
+    when given, the drawings' ``[calibration] position_error_b_m`` and ``position_sigma_m``
+    (carried into the calibration it writes; at rest positions do not show).
+    """
+
+    layout: ArrayLayout
+    noise_sigma_mps2: np.ndarray
+    bias_rw_mps2_rts: np.ndarray
+    range_mps2: float
+    position_error_b_m: np.ndarray
+    position_sigma_m: float
+
+
+def read_array_config(path: str | Path) -> ArrayConfig:
+    """Read the array and sensor sections of a ``config.toml`` (no other section needed)."""
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ValueError(f"{p}: no such file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{p}: not valid TOML: {exc}") from None
+    for section in ("array", "sensor"):
+        if not isinstance(data.get(section), dict):
+            raise ValueError(f"{p}: missing section [{section}]")
+    arr, sen, cal = data["array"], data["sensor"], data.get("calibration", {})
+    pos = _matrix(arr, "positions_b_m", (None, 3), f"{p} [array]")
+    n = pos.shape[0]
+    layout = ArrayLayout(
+        pos,
+        _matrix(arr, "axes_b", (n, 3), f"{p} [array]"),
+        name=str(arr.get("name", "config")),
+        lever_arm_m=arr.get("lever_arm_m"),
+    )
+    if "range_mps2" not in sen:
+        raise ValueError(f"{p} [sensor]: missing key range_mps2")
+    dr = (
+        _matrix(cal, "position_error_b_m", (n, 3), f"{p} [calibration]")
+        if "position_error_b_m" in cal
+        else np.zeros((n, 3))
+    )
+    return ArrayConfig(
+        layout=layout,
+        noise_sigma_mps2=_vector(sen, "noise_sigma_mps2", n, f"{p} [sensor]"),
+        bias_rw_mps2_rts=_vector(sen, "bias_rw_mps2_rts", n, f"{p} [sensor]", 0.0),
+        range_mps2=float(sen["range_mps2"]),
+        position_error_b_m=dr,
+        position_sigma_m=float(cal.get("position_sigma_m", 0.0)),
+    )

@@ -91,7 +91,7 @@ class FractionBar:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ngnav.cli import assess, bench, demo, flight, paper, plot
+    from ngnav.cli import assess, bench, calibrate, demo, flight, paper, plot
     from ngnav.cli.stream import add_stream_parser
 
     parser = argparse.ArgumentParser(
@@ -105,6 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_stream_parser(sub, add_flight_args)
     assess.add_parsers(sub)
     plot.add_parsers(sub)
+    calibrate.add_parsers(sub)
     bench.add_parsers(sub)
     return parser
 

@@ -54,6 +54,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from ngnav.sim.simulate import simulate_flight
     from telemetry.runfiles import truth_path, write_run
 
+    if args.calibration_recordings is not None:
+        from ngnav.sim.bench_recordings import bench_session, write_bench_session
+
+        scn = flight_scenario(args)
+        session = bench_session(scn, args.run_index, continuous=args.continuous)
+        out = write_bench_session(session, args.calibration_recordings)
+        what = "one recording (array.csv)" if args.continuous else "18 poses (static/*.csv)"
+        print(
+            f"simulated the bench session of {scn.name} run {args.run_index}'s array: {what}, "
+            f"config.toml and truth_calibration.toml -> {out}"
+        )
+        if args.out is None and args.stream is None:
+            return 0
     if args.out is None and args.stream is None:
         raise ValueError("say where the run goes: --out DIR|NAME.tlog and/or --stream udpout:...")
     scn = flight_scenario(args)
@@ -237,6 +250,17 @@ def add_parsers(sub) -> None:
         type=float,
         default=1.0,
         help="run seconds per wall second for --stream; 0 = unpaced (default: 1, real time)",
+    )
+    p.add_argument(
+        "--calibration-recordings",
+        metavar="DIR",
+        help="also write the array's bench session for ngnav calibrate: DIR/config.toml and "
+        "18 still poses (static/*.csv), or one recording with --continuous",
+    )
+    p.add_argument(
+        "--continuous",
+        action="store_true",
+        help="with --calibration-recordings: one array.csv, turning between the poses",
     )
     p.set_defaults(func=cmd_simulate)
 
