@@ -42,7 +42,7 @@ from ngnav.compensation import _QUAD_I, _QUAD_J
 from ngnav.errors import CovarianceError
 from ngnav.frontend import ArraySolver
 from ngnav.geodesy import LocalTangentPlane
-from ngnav.layout import ArrayLayout
+from ngnav.layout import FEATURE_NAMES, ArrayLayout
 from ngnav.records import (
     NAV_BLOCKS,
     ArraySamples,
@@ -133,10 +133,14 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
         if bound and truth is None:
             raise ValueError("the bound needs the truth")
         solver = ArraySolver(cfg.layout, cfg.noise_sigma_mps2)
-        if solver.rate_aided:
+        unsolved = [FEATURE_NAMES[c] for c in range(9, 12) if c not in solver.solved_columns]
+        if unsolved:
+            # the rate products are the filter's rate measurement: without one, its rate
+            # about some axis is never measured
             raise ValueError(
-                f"layout {cfg.layout.name!r} cannot solve its rate terms; the filter needs a "
-                "layout that solves angular acceleration, force and rate products (e.g. nine-cube)"
+                f"layout {cfg.layout.name!r} cannot solve the rate product "
+                f"{', '.join(unsolved)} beside angular acceleration and force; the filter "
+                "measures the rate with the three products (e.g. a nine-sensor cube)"
             )
         if dt_s is not None and not (np.isfinite(dt_s) and dt_s > 0):
             raise ValueError(f"dt_s must be a positive number, got {dt_s}")
@@ -158,11 +162,16 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
         self._pairs = np.column_stack([_QUAD_I[quad_cols], _QUAD_J[quad_cols]])
         self._smat = solver.solve_matrix
         self._se = None
+        # terms the layout excites but cannot solve (an as-built cube's faint rate squares)
+        # go with the mounting errors: the compensation takes them out with the rate
+        aided = np.zeros_like(cfg.layout.design)
+        aided[:, solver.aided_columns] = cfg.layout.design[:, solver.aided_columns]
         if method in ("gm11", "line", "last"):
-            self._se = self._smat @ cfg.known_errors.error_matrix(cfg.layout)  # (k, 12)
+            e = cfg.known_errors.error_matrix(cfg.layout)  # (N, 12)
+            self._se = self._smat @ (e + aided if solver.rate_aided else e)  # (k, 12)
         self._e_true = None
         if method == "oracle":
-            self._e_true = self._smat @ (true_layout.design - cfg.layout.design)
+            self._e_true = self._smat @ (true_layout.design - cfg.layout.design + aided)
         self.dt = dt_s
         self._k = cols.shape[0]
         # sample store: global index g lives at row g - base

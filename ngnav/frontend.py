@@ -2,9 +2,10 @@
 
 :class:`ArraySolver` solves, by weighted least squares on the design matrix of
 :mod:`ngnav.layout`, for angular acceleration, specific force and whichever
-quadratic rate terms the layout excites. Layouts whose quadratic terms cannot
-be solved alongside (every six-sensor layout) are solved *rate-aided*: the
-quadratic terms are computed from a rate supplied by the caller. A layout that
+quadratic rate terms the layout excites and can solve alongside them (the most
+strongly excited first). The terms it cannot (all of them on a six-sensor layout, an
+as-built nine-cube's faint rate squares) are *rate-aided*: computed from a rate
+supplied by the caller. A layout that
 cannot determine angular acceleration and specific force is refused with an
 error that names the unobservable direction.
 
@@ -65,7 +66,8 @@ class ArraySolver:
         Names of the features solved from the outputs (see
         :data:`ngnav.layout.FEATURE_NAMES`).
     rate_aided : bool
-        True when the layout excites quadratic rate terms it cannot solve: then
+        True when the layout excites quadratic rate terms it cannot solve with the
+        others (the solved set takes the most strongly excited that it can): then
         :meth:`solve` needs ``omega_b_rps``.
 
     Raises
@@ -92,14 +94,18 @@ class ArraySolver:
                 f"layout {layout.name!r} ({n} sensors) cannot observe angular acceleration and "
                 f"specific force: no output responds to the direction {missing}"
             )
-        cols = np.concatenate([_LINEAR, excited])
-        full_missing = _rank_check(g[:, cols], [FEATURE_NAMES[i] for i in cols])
-        if full_missing is None:
-            self._cols = cols
-            self._aided_cols = np.array([], dtype=int)
-        else:
-            self._cols = _LINEAR
-            self._aided_cols = excited
+        # the rate terms the outputs solve with the linear ones, strongest first; the rest
+        # (e.g. an as-built cube's faint rate squares) are computed from a rate (aided)
+        strength = np.linalg.norm(g[:, excited] / sigma[:, None], axis=0)
+        cols, aided = list(_LINEAR), []
+        for c in excited[np.argsort(-strength, kind="stable")]:
+            trial = sorted([*cols, int(c)])
+            if _rank_check(g[:, trial], [FEATURE_NAMES[i] for i in trial]) is None:
+                cols = trial
+            else:
+                aided.append(int(c))
+        self._cols = np.array(cols, dtype=int)
+        self._aided_cols = np.array(sorted(aided), dtype=int)
         self.rate_aided = self._aided_cols.size > 0
         self.solved_features = tuple(FEATURE_NAMES[i] for i in self._cols)
         h = g[:, self._cols]

@@ -677,3 +677,49 @@ def test_bias_states_tell_the_truth_through_the_forecasts_loop():
     lo, hi = chi2.ppf([0.005, 0.995], 6 * runs) / runs
     mean = nees.mean(axis=0)
     assert np.all((mean > lo) & (mean < hi)), (mean, lo, hi)
+
+
+def test_an_as_built_geometry_is_a_layout_like_any_other(tactical):
+    """The calibrated cube given as measured positions and axes (no separate errors) solves
+    the rate products, leaves its faint rate squares to the compensation, and flies as
+    the nominal layout plus the same known errors does."""
+    from dataclasses import replace
+
+    from ngnav.frontend import ArraySolver
+    from ngnav.mounting import MountingErrors
+
+    cfg = tactical.config
+    built = cfg.known_errors.real_layout(cfg.layout)
+    solver = ArraySolver(built, cfg.noise_sigma_mps2)
+    assert solver.solved_features[6:] == ("wy*wz", "wx*wz", "wx*wy")
+    assert solver.aided_columns.tolist() == [6, 7, 8]  # the squares: 9 outputs, 12 terms
+    as_built = replace(cfg, layout=built, known_errors=MountingErrors.zeros(built.n_sensors))
+    ref = summarise(run_errors(run_filter(tactical.samples, tactical.fixes, cfg).estimates,
+                               tactical.truth))  # fmt: skip
+    got = summarise(
+        run_errors(run_filter(tactical.samples, tactical.fixes, as_built).estimates, tactical.truth)
+    )
+    for name in ("horiz_rms_m", "roll_rms_deg", "pitch_rms_deg", "yaw_rms_deg", "rate_rms_dps"):
+        assert getattr(got, name) == pytest.approx(getattr(ref, name), rel=0.02), name
+
+
+def test_a_layout_without_the_rate_products_is_refused_naming_them(tactical):
+    from dataclasses import replace
+
+    from ngnav.layout import six_accelerometer_cube
+    from ngnav.mounting import MountingErrors
+
+    six = six_accelerometer_cube()
+    cfg = replace(
+        tactical.config,
+        layout=six,
+        known_errors=MountingErrors.zeros(6),
+        scale=np.ones(6),
+        offset_mps2=np.zeros(6),
+        noise_sigma_mps2=tactical.config.noise_sigma_mps2[:6],
+        turn_on_bias_mps2=tactical.config.turn_on_bias_mps2[:6],
+        bias_rw_mps2_rts=tactical.config.bias_rw_mps2_rts[:6],
+    )
+    samples = ArraySamples(tactical.samples.t_s, tactical.samples.accel_mps2[:, :6])
+    with pytest.raises(ValueError, match=r"cannot solve the rate product wy\*wz, wx\*wz, wx\*wy"):
+        run_filter(samples, tactical.fixes, cfg)
