@@ -112,11 +112,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def add_parsers(sub) -> None:
     """Register ``ngnav calibrate``."""
-    p = sub.add_parser(
-        "calibrate",
-        help="an array's offsets, scales and axis errors from static poses "
-        "(DIR: config.toml and static/*.csv or array.csv)",
+    what = (
+        "an array's offsets, scales and axis errors from static poses "
+        "(DIR: config.toml and static/*.csv or array.csv)"
     )
+    p = sub.add_parser("calibrate", help=what, description=what[0].upper() + what[1:] + ".")
     p.add_argument("dir", help="directory with config.toml and static/*.csv or array.csv")
     p.add_argument("--out", help="where to write (default: DIR/calibration.toml)")
     p.add_argument("--json", action="store_true", help="machine-readable output")
