@@ -17,12 +17,11 @@ import numpy as np
 
 from ngnav.calibration import multiposition_directions
 from ngnav.conventions import G0_MPS2
-from ngnav.layout import layout_by_name
 from ngnav.motion import min_jerk_step
-from ngnav.paper import draw_mounting_errors
 from ngnav.records import ArraySamples
 from ngnav.runio import write_array_csv
 from ngnav.sim.flight_scenario import FlightScenario
+from ngnav.sim.simulate import draw_array
 from ngnav.static_calibration import axis_errors_in_calibration_frame
 
 
@@ -84,16 +83,9 @@ def bench_session(
     rng = np.random.default_rng([scn.run.seed, run_index])
     rate = scn.run.rate_hz
     dt = 1.0 / rate
-    spec = scn.sensor.spec()
-    nominal = layout_by_name(scn.array.layout, scn.array.lever_arm_m)
-    n = nominal.n_sensors
-    m = scn.mounting
-    # the flight's own draws, in its order (ngnav.sim.simulate.simulate_flight)
-    designed, true_errors = draw_mounting_errors(
-        nominal, m.outward_offset_m, m.position_scatter_m, m.axis_error_deg, rng
-    )
-    scale_error = rng.normal(0.0, spec.scale_error, n)
-    real = true_errors.real_layout(nominal)
+    arr = draw_array(scn, rng)  # the flight's own array (ngnav.sim.simulate.draw_array)
+    spec, nominal, real, scale_error = arr.spec, arr.nominal, arr.real, arr.scale_error
+    designed, m = arr.designed, scn.mounting
     ups = multiposition_directions()
     n_hold = round(seconds_per_pose * rate)
     n_turn = round(turn_s * rate)

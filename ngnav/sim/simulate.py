@@ -113,19 +113,45 @@ def bench_calibration(
     return calibrate_multiposition(up, readings / G0_MPS2 * 1000.0, nominal, 1000.0)
 
 
-def simulate_flight(scn: FlightScenario, run_index: int = 0) -> SimulatedRun:
-    """Simulate run ``run_index`` of a flight scenario (see module docstring)."""
-    rng = np.random.default_rng([scn.run.seed, run_index])
-    rate = scn.run.rate_hz
+@dataclass(frozen=True)
+class DrawnArray:
+    """Run ``i``'s array as built: the first draws of ``default_rng([seed, i])``, in this
+    order, so the flight and its bench session (:mod:`ngnav.sim.bench_recordings`) share it.
+
+    ``designed`` (N, 3) are the drawings' offsets (known), ``true_errors`` the real
+    positions and axes, ``scale_error`` (N,) the real sensitivity over nominal minus 1.
+    """
+
+    spec: AccelerometerSpec
+    nominal: ArrayLayout
+    designed: np.ndarray
+    true_errors: MountingErrors
+    scale_error: np.ndarray
+    real: ArrayLayout
+
+
+def draw_array(scn: FlightScenario, rng: np.random.Generator) -> DrawnArray:
+    """Draw the scenario's array from ``rng`` (the run's first draws; see :class:`DrawnArray`)."""
     spec = scn.sensor.spec()
     nominal = layout_by_name(scn.array.layout, scn.array.lever_arm_m)
-    n = nominal.n_sensors
     m = scn.mounting
     designed, true_errors = draw_mounting_errors(
         nominal, m.outward_offset_m, m.position_scatter_m, m.axis_error_deg, rng
     )
-    scale_error = rng.normal(0.0, spec.scale_error, n)
+    scale_error = rng.normal(0.0, spec.scale_error, nominal.n_sensors)
     real = true_errors.real_layout(nominal)
+    return DrawnArray(spec, nominal, designed, true_errors, scale_error, real)
+
+
+def simulate_flight(scn: FlightScenario, run_index: int = 0) -> SimulatedRun:
+    """Simulate run ``run_index`` of a flight scenario (see module docstring)."""
+    rng = np.random.default_rng([scn.run.seed, run_index])
+    rate = scn.run.rate_hz
+    arr = draw_array(scn, rng)
+    spec, nominal, real, scale_error = arr.spec, arr.nominal, arr.real, arr.scale_error
+    designed, true_errors = arr.designed, arr.true_errors
+    n = nominal.n_sensors
+    m = scn.mounting
     cal = bench_calibration(spec, real, nominal, scale_error, m.calibration_samples, rate, rng)
     known = MountingErrors(designed, cal.axis_error_rad)
 
