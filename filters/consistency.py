@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from functools import partial
+from pathlib import Path
 
 import numpy as np
 
@@ -130,11 +131,11 @@ def finite_mean(x: np.ndarray, axis: int | None = None) -> np.ndarray:
         return np.where(n > 0, total / np.maximum(n, 1), np.nan)
 
 
-def _mean_se(stacked: np.ndarray) -> float:
-    """Standard error of a block's mean statistic from its runs (R, E): the spread of
-    the runs' own means over their epochs, over sqrt(R); NaN below two runs. The runs
-    are independent, their epochs not: this counts each run once."""
-    per_run = finite_mean(stacked, axis=1)
+def _mean_se(run_means: np.ndarray) -> float:
+    """Standard error of a block's mean statistic from its runs' own means over their
+    epochs (R,): their spread over sqrt(R); NaN below two runs. The runs are
+    independent, their epochs not: this counts each run once."""
+    per_run = np.asarray(run_means)
     per_run = per_run[np.isfinite(per_run)]
     if per_run.shape[0] < 2:
         return float("nan")
@@ -151,19 +152,24 @@ def summarise_block(per_run: list[np.ndarray], dim: int, runs: int) -> tuple[dic
     """
     stacked = np.vstack(per_run)
     avg = finite_mean(stacked, axis=0)
+    return summarise_average(avg, finite_mean(stacked, axis=1), dim, runs), avg
+
+
+def summarise_average(avg: np.ndarray, run_means: np.ndarray, dim: int, runs: int) -> dict:
+    """:func:`summarise_block`'s summary from the per-epoch average (E,) over the runs
+    and each run's own mean (R,): all it needs, so runs need not be kept."""
     lo, hi = chi2_bounds(dim, runs)
     ok = np.isfinite(avg)
-    out = {
+    return {
         "dim": dim,
         "lower": lo,
         "upper": hi,
         "mean": float(finite_mean(avg)),
-        "mean_se": _mean_se(stacked),
+        "mean_se": _mean_se(run_means),
         "share_inside": share_inside(avg, dim, runs),
         "share_below": float(np.mean(avg[ok] < lo)),
         "share_above": float(np.mean(avg[ok] > hi)),
     }
-    return out, avg
 
 
 #: The NEES blocks judged, name to degrees of freedom (``aoa``, 1, is added when the
@@ -280,6 +286,119 @@ def summarise_runs(
     return out, averages
 
 
+class RunningSummary:
+    """:func:`summarise_runs`'s report built as runs arrive, without keeping them.
+
+    Each block keeps its per-epoch sum and count of finite values (float64) and each
+    run's own mean: a campaign of thousands of runs holds one run at a time. With
+    ``save_dir`` each run's record is written there as it arrives
+    (``run_NNNNN.npz``: its NEES blocks, NIS and times), so the raw series stay for
+    later study.
+    """
+
+    def __init__(self, from_s: float | None = None, save_dir: str | Path | None = None):
+        self.from_s = from_s
+        self.save_dir = None if save_dir is None else Path(save_dir)
+        if self.save_dir is not None:
+            self.save_dir.mkdir(parents=True, exist_ok=True)
+        self.t_s: np.ndarray | None = None
+        self.dims: dict[str, int] | None = None
+        self._sums: dict[str, np.ndarray] = {}
+        self._counts: dict[str, np.ndarray] = {}
+        self._means: dict[str, dict[int, float]] = {}
+        self._means_from: dict[str, dict[int, float]] = {}
+        self._kept_from: dict[str, np.ndarray] = {}
+        self._att: dict[int, float] = {}
+        self._rate_dim = 0
+        self.diverged: list[dict] = []
+
+    def add(self, i: int, rec: dict) -> None:
+        """Take run ``i``'s record (:func:`one_run`)."""
+        if "diverged" in rec:
+            self.diverged.append({"run": i, "reason": rec["diverged"]})
+            return
+        if self.t_s is None:
+            self.t_s, self.dims, self._rate_dim = rec["t_s"], nees_dims([rec]), rec["rate_dim"]
+            if self.from_s is not None:
+                # the epochs from from_s on, by each block's own times (as block_series)
+                times = {"NIS gps pos": rec["t_fix_s"], "NIS gps vel": rec["t_fix_s"]}
+                times["NIS rate"] = rec["rate_t_s"]
+                for name in block_series([rec], self.dims):
+                    self._kept_from[name] = times.get(name, rec["t_s"]) >= self.from_s
+        elif rec["t_s"].shape != self.t_s.shape:
+            raise ValueError("Monte Carlo runs produced different epochs; cannot average")
+        for name, ([values], _) in block_series([rec], self.dims).items():
+            v = np.asarray(values, dtype=np.float64)
+            ok = np.isfinite(v)
+            if name not in self._sums:
+                self._sums[name] = np.zeros(v.shape)
+                self._counts[name] = np.zeros(v.shape, dtype=np.int64)
+                self._means[name], self._means_from[name] = {}, {}
+            self._sums[name] += np.where(ok, v, 0.0)
+            self._counts[name] += ok
+            self._means[name][i] = float(finite_mean(values))
+            if self.from_s is not None:
+                self._means_from[name][i] = float(finite_mean(values[self._kept_from[name]]))
+        self._att[i] = rec["att_rms_deg"]
+        if self.save_dir is not None:
+            flat = {f"nees_{k}": v for k, v in rec["nees"].items()}
+            for key in ("t_s", "nis_pos", "nis_vel", "t_fix_s", "rate_nis", "rate_t_s"):
+                flat[key] = rec[key]
+            flat["att_rms_deg"] = np.array(rec["att_rms_deg"])
+            np.savez_compressed(self.save_dir / f"run_{i:05d}.npz", **flat)
+
+    def fail(self, failures: list) -> None:
+        """Record runs that raised (:class:`ngnav.campaign.RunFailure`)."""
+        self.diverged += [{"run": f.run, "reason": f"failed: {f.error}"} for f in failures]
+
+    def _blocks(self, from_epochs: bool) -> tuple[dict, dict[str, np.ndarray]]:
+        runs = len(self._att)
+        blocks, averages = {}, {}
+        for name, total in self._sums.items():
+            count = self._counts[name]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                avg = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+            means = self._means_from[name] if from_epochs else self._means[name]
+            if from_epochs:
+                avg = avg[self._kept_from[name]]
+            run_means = np.array([means[i] for i in sorted(means)])
+            blocks[name] = summarise_average(avg, run_means, self._dim(name), runs)
+            if name.startswith("NEES "):
+                averages[name[5:]] = avg
+        return blocks, averages
+
+    def _dim(self, name: str) -> int:
+        if name.startswith("NEES "):
+            return self.dims[name[5:]]
+        return 3 if name.startswith("NIS gps") else self._rate_dim
+
+    def summary(
+        self, scenario: str, method: str, profile_s: float | None = None
+    ) -> tuple[dict, dict[str, np.ndarray]]:
+        """The report of :func:`summarise_runs` and the NEES blocks' per-epoch averages."""
+        if not self._att:
+            raise ValueError(f"no Monte Carlo run finished: {sorted(self.diverged, key=_run)}")
+        out: dict = {
+            "scenario": scenario,
+            "runs": len(self._att),
+            "method": method,
+            "from_s": self.from_s,
+            "diverged": sorted(self.diverged, key=_run),
+        }
+        out["blocks"], averages = self._blocks(False)
+        if self.from_s is not None:
+            out["blocks_from"] = self._blocks(True)[0]
+        if profile_s is not None:
+            out["profile"] = nees_profile(self.t_s, averages, profile_s)
+        out["target"] = target_verdict(out["blocks"])
+        out["att_rms_deg_median"] = float(np.median([self._att[i] for i in sorted(self._att)]))
+        return out, averages
+
+
+def _run(d: dict) -> int:
+    return d["run"]
+
+
 def consistency(
     scn: FlightScenario,
     runs: int,
@@ -289,6 +408,7 @@ def consistency(
     profile_s: float | None = None,
     from_s: float | None = None,
     scheduler: str | None = None,
+    save_dir: str | Path | None = None,
 ) -> dict:
     """NEES/NIS over ``runs`` Monte Carlo runs; share of epochs inside the 95 % bounds.
 
@@ -305,7 +425,9 @@ def consistency(
     many seconds (:func:`nees_profile`).
     ``target`` is the target's verdict on ``blocks`` (:func:`target_verdict`).
     """
-    return consistency_series(scn, runs, method, workers, progress, profile_s, from_s, scheduler)[0]
+    return consistency_series(
+        scn, runs, method, workers, progress, profile_s, from_s, scheduler, save_dir
+    )[0]
 
 
 def consistency_series(
@@ -317,12 +439,29 @@ def consistency_series(
     profile_s: float | None = None,
     from_s: float | None = None,
     scheduler: str | None = None,
+    save_dir: str | Path | None = None,
 ) -> tuple[dict, np.ndarray, dict[str, np.ndarray]]:
     """:func:`consistency`'s report, the epochs' times (E,) and each NEES block's
-    per-epoch average over the runs (E,): what ``ngnav consistency --plot`` draws."""
+    per-epoch average over the runs (E,): what ``ngnav consistency --plot`` draws.
+
+    The runs are summarised as they arrive (:class:`RunningSummary`), one at a time in
+    memory; ``save_dir`` also writes each run's record there.
+    """
+    from ngnav.campaign import run_campaign
+
     method = method or scn.compensation.method
     if runs < 1:
         raise ValueError(f"runs must be at least 1, got {runs}")
-    results, diverged = monte_carlo_runs(scn, runs, method, workers, progress, scheduler=scheduler)
-    out, averages = summarise_runs(scn.name, method, results, diverged, profile_s, from_s)
-    return out, results[0]["t_s"], averages
+    acc = RunningSummary(from_s, save_dir)
+    failures = run_campaign(
+        partial(one_run, scn, method=method),
+        range(runs),
+        acc.add,
+        workers=workers,
+        scheduler=scheduler,
+        progress=progress,
+        desc=f"consistency {method}",
+    )
+    acc.fail(failures)
+    out, averages = acc.summary(scn.name, method, profile_s)
+    return out, acc.t_s, averages

@@ -52,3 +52,33 @@ def test_cli_refuses_no_runs_in_one_line():
     proc = run_cli("consistency", *SHORT_TACTICAL_ARGS, "--runs", "0", check=False)
     assert proc.returncode == 2
     assert proc.stderr.strip() == "ngnav consistency: error: runs must be at least 1, got 0"
+
+
+def test_the_running_summary_equals_the_summary_of_all_runs(tmp_path):
+    """Runs summarised as they arrive, out of order and one at a time, give the report of
+    all runs held at once; saved runs read back as they were."""
+    from filters.consistency import RunningSummary, monte_carlo_runs, summarise_runs
+    from ngnav.sim.flight_scenario import load_flight
+
+    scn = load_flight("tactical", ["run.rate_hz=200"])
+    results, diverged = monte_carlo_runs(scn, 3, "gm11", workers=1)
+    want, want_avg = summarise_runs("s", "gm11", results, diverged, 2.0, 10.0)
+    acc = RunningSummary(10.0, tmp_path / "runs")
+    for r in reversed(results):
+        acc.add(r["run"], r)
+    got, got_avg = acc.summary("s", "gm11", 2.0)
+    for section in ("blocks", "blocks_from"):
+        assert got[section].keys() == want[section].keys()
+        for name, block in want[section].items():
+            for key, value in block.items():
+                assert got[section][name][key] == pytest.approx(value, rel=1e-6, abs=1e-12), (
+                    section,
+                    name,
+                    key,
+                )
+    assert got["att_rms_deg_median"] == want["att_rms_deg_median"]
+    for name, avg in want_avg.items():
+        np.testing.assert_allclose(got_avg[name], avg, rtol=1e-6)
+    saved = np.load(tmp_path / "runs" / "run_00001.npz")
+    np.testing.assert_array_equal(saved["nees_att"], results[1]["nees"]["att"])
+    np.testing.assert_array_equal(saved["nis_pos"], results[1]["nis_pos"])

@@ -123,6 +123,7 @@ def cmd_consistency(args: argparse.Namespace) -> int:
         profile_s=args.profile,
         from_s=args.from_s,
         scheduler=args.scheduler,
+        save_dir=args.save,
     )
     if args.plot:
         from ngnav.plots import plot_nees
@@ -199,5 +200,8 @@ def add_parsers(sub) -> None:
     add_consistency_args(p)
     p.add_argument(
         "--plot", metavar="DIR", help="also draw each NEES block against its band: DIR/nees.png"
+    )
+    p.add_argument(
+        "--save", metavar="DIR", help="also write each run's NEES and NIS series as it arrives"
     )
     p.set_defaults(func=cmd_consistency)
