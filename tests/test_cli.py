@@ -163,6 +163,8 @@ def test_progress_is_drawn_on_a_terminal_and_not_in_ci_or_a_pipe(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "CI"}
     drawn = _stderr_on_a_terminal(["run", str(d)], env)
     assert "filter: 100%" in drawn
+    sim = ["simulate", "--scenario", "tactical", "--set", "run.rate_hz=200", "--out", str(d)]
+    assert "simulate: 100%" in _stderr_on_a_terminal(sim, env)
     assert _stderr_on_a_terminal(["run", str(d)], {**env, "CI": "true"}) == ""
     piped = subprocess.run(
         [sys.executable, "-m", "ngnav.cli", "run", str(d)],

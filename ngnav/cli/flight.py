@@ -70,7 +70,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if args.out is None and args.stream is None:
         raise ValueError("say where the run goes: --out DIR|NAME.tlog and/or --stream udpout:...")
     scn = flight_scenario(args)
-    sim = simulate_flight(scn, args.run_index)
+    with FractionBar("simulate") as bar:
+        sim = simulate_flight(scn, args.run_index, progress=bar)
     where = []
     if args.out is not None:
         out = write_run(args.out, sim.samples, sim.fixes, sim.config)

@@ -11,6 +11,7 @@ the same run, bit for bit.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -143,8 +144,15 @@ def draw_array(scn: FlightScenario, rng: np.random.Generator) -> DrawnArray:
     return DrawnArray(spec, nominal, designed, true_errors, scale_error, real)
 
 
-def simulate_flight(scn: FlightScenario, run_index: int = 0) -> SimulatedRun:
-    """Simulate run ``run_index`` of a flight scenario (see module docstring)."""
+def simulate_flight(
+    scn: FlightScenario, run_index: int = 0, progress: Callable[[float], None] | None = None
+) -> SimulatedRun:
+    """Simulate run ``run_index`` of a flight scenario (see module docstring).
+
+    ``progress``, optional, is called with the fraction done (0-1) after each stage
+    (the bench calibration, the flight, the sensors, the GPS receiver).
+    """
+    done = progress or (lambda fraction: None)
     rng = np.random.default_rng([scn.run.seed, run_index])
     rate = scn.run.rate_hz
     arr = draw_array(scn, rng)
@@ -153,6 +161,7 @@ def simulate_flight(scn: FlightScenario, run_index: int = 0) -> SimulatedRun:
     n = nominal.n_sensors
     m = scn.mounting
     cal = bench_calibration(spec, real, nominal, scale_error, m.calibration_samples, rate, rng)
+    done(0.1)
     known = MountingErrors(designed, cal.axis_error_rad)
 
     plan = scn.plan()
@@ -160,8 +169,10 @@ def simulate_flight(scn: FlightScenario, run_index: int = 0) -> SimulatedRun:
         # this run's aircraft: the type's lift law with its own rigging and loading
         plan = replace(plan, lift=plan.lift.drawn(*scn.lift_scatter, rng))
     truth = fly(plan, rate)
+    done(0.5)
     clean = real.outputs(truth.omega_dot_b_rps2, truth.f_b_mps2, truth.omega_b_rps)
     out, saturated, bias = spec.simulate(clean, rate, scale_error, rng)
+    done(0.8)
     samples = ArraySamples(truth.t_s, out)
 
     g = scn.gps
@@ -179,6 +190,7 @@ def simulate_flight(scn: FlightScenario, run_index: int = 0) -> SimulatedRun:
     )
     ltp = LocalTangentPlane(scn.reference.lat_deg, scn.reference.lon_deg, scn.reference.alt_m)
     fixes, glitched = receiver.simulate(truth, ltp, rng)
+    done(1.0)
 
     ini = scn.initial
     rpy0 = np.rad2deg(euler_from_quat(truth.q_nb[0]))
