@@ -21,8 +21,6 @@ is the filter's own rate estimate, so the compensation does not drift.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from filters.alignment import AlignmentMixin
@@ -44,7 +42,6 @@ from ngnav.frontend import ArraySolver
 from ngnav.geodesy import LocalTangentPlane
 from ngnav.layout import FEATURE_NAMES, ArrayLayout
 from ngnav.records import (
-    NAV_BLOCKS,
     ArraySamples,
     Estimates,
     FlightTruth,
@@ -208,7 +205,9 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
         self.last_forecast_error = np.full(6, np.nan)
         #: The latest epoch's record (None before the first).
         self.latest: NavEstimate | None = None
-        self._rec: list[NavEstimate] = []
+        #: The run's history: each epoch's fields for :class:`Estimates` (the 12 x 12
+        #: navigation covariance only; the full P goes to ``on_epoch`` and ``latest``).
+        self._rows: list[tuple] = []
         self._inn: list[tuple] = []
         self._rate_nis: list[float] = []
         self._rate_nis_t: list[float] = []
@@ -219,7 +218,7 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
         pb = self._p_bound[:12, :12] if self._p_bound is not None else None
         self.n_epochs += 1
         if not self.keep_estimates:
-            self._rec.clear()
+            self._rows.clear()
         p = nf.P.copy()
         vel = nf.vel
         if nf.in_body_frame():
@@ -257,10 +256,19 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
             aoa_states=np.array([nf.aoa_b, nf.aoa_k][: lay.n_aoa]) if lay.n_aoa else None,
         )
         self.latest = est
-        # the run's history keeps the navigation block only: the full P (n^2 floats an
-        # epoch, n up to ~50 with sensor positions) goes to on_epoch and `latest`
-        self._rec.append(
-            replace(est, cov=est.cov_nav, state_blocks=NAV_BLOCKS, dr_m=None, aoa_states=None)
+        self._rows.append(
+            (
+                est.t_s,
+                est.pos_ned_m,
+                est.vel_ned_mps,
+                est.q_nb,
+                est.omega_b_rps,
+                est.bias,
+                est.cov[:12, :12].copy(),
+                est.bound_nav,
+                est.aoa_rad,
+                est.aoa_sigma_rad,
+            )
         )
 
     # --------------------------------------------------------------- output
@@ -269,7 +277,7 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
         if not self.started:
             raise ValueError("the filter has not started: no estimates")
         nf = self.nf
-        estimates = Estimates.stack(self._rec)
+        estimates = Estimates.from_rows(self._rows)
         inn = np.array([r[0:3] for r in self._inn], dtype=float).reshape(-1, 3)
         acc = np.array([r[3:5] for r in self._inn], dtype=bool).reshape(-1, 2)
         innovations = GpsInnovations(inn[:, 0], inn[:, 1], inn[:, 2], acc[:, 0], acc[:, 1])

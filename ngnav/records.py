@@ -300,22 +300,33 @@ class Estimates:
     @classmethod
     def stack(cls, epochs: list[NavEstimate]) -> Estimates:
         """The records of consecutive epochs as one :class:`Estimates`."""
-        if not epochs:
-            raise ValueError("no estimates to stack")
-        aoa = epochs[0].aoa_rad is not None
-        bound = epochs[0].bound_nav is not None
-        return cls(
-            np.array([e.t_s for e in epochs]),
-            np.array([e.pos_ned_m for e in epochs]),
-            np.array([e.vel_ned_mps for e in epochs]),
-            np.array([e.q_nb for e in epochs]),
-            np.array([e.omega_b_rps for e in epochs]),
-            np.array([e.bias for e in epochs]),
-            np.array([e.cov_nav for e in epochs]),
-            np.array([e.bound_nav for e in epochs]) if bound else None,
-            np.array([e.aoa_rad for e in epochs]) if aoa else None,
-            np.array([e.aoa_sigma_rad for e in epochs]) if aoa else None,
+        return cls.from_rows(
+            [
+                (
+                    e.t_s,
+                    e.pos_ned_m,
+                    e.vel_ned_mps,
+                    e.q_nb,
+                    e.omega_b_rps,
+                    e.bias,
+                    e.cov_nav,
+                    e.bound_nav,
+                    e.aoa_rad,
+                    e.aoa_sigma_rad,
+                )
+                for e in epochs
+            ]
         )
+
+    @classmethod
+    def from_rows(cls, rows: list[tuple]) -> Estimates:
+        """Epochs given as this class's fields in order, one tuple each (E rows)."""
+        if not rows:
+            raise ValueError("no estimates to stack")
+        cols = list(zip(*rows, strict=True))
+        out = [np.array(c) for c in cols[:7]]
+        out += [None if c[0] is None else np.array(c) for c in cols[7:]]
+        return cls(*out)
 
 
 @dataclass(frozen=True)
