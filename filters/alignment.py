@@ -16,6 +16,7 @@ from filters.forecast import (
 )
 from filters.noise import filter_noise, static_mean_walk_s
 from filters.rest import RestDetector
+from filters.smoother import SmootherLog
 from filters.supervision import (
     COURSE_MIN_SPEED_MPS,
     GATE_PROBABILITY,
@@ -218,6 +219,9 @@ class AlignmentMixin:
                 seed_motion[3:6],
                 load_cov=nf.noise.feature_cov[3:6, 3:6] / int(np.count_nonzero(seed_ok)),
             )
+        if self.smooth:
+            self.smoother = SmootherLog(nf.layout.n)
+            nf.lag = self.smoother.lag
         self._record()
         self._hist = np.empty((window + 1024, 9))
         self._h_n = window  # rows used

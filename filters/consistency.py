@@ -26,6 +26,7 @@ from filters.evaluate import (
     share_inside,
 )
 from filters.pipeline import run_filter
+from filters.smoother import RESTARTS
 from ngnav.errors import CovarianceError
 from ngnav.sim.flight_scenario import FlightScenario
 from ngnav.sim.simulate import SimulatedRun, simulate_flight
@@ -35,13 +36,22 @@ from ngnav.sim.simulate import SimulatedRun, simulate_flight
 RunExtras = Callable[[SimulatedRun, int], dict]
 
 
-def one_run(scn: FlightScenario, i: int, method: str, extras: RunExtras | None = None) -> dict:
+def one_run(
+    scn: FlightScenario,
+    i: int,
+    method: str,
+    extras: RunExtras | None = None,
+    smooth: bool = False,
+) -> dict:
     """Run ``i`` of the Monte Carlo set: the filter's NEES per block and NIS per epoch.
 
     Returns ``{"run": i, "diverged": reason}`` when the covariance check fails;
     otherwise the run's record (``nees`` per block at the epochs ``t_s``; GPS NIS at
-    ``t_fix_s``, the glitched fixes NaN; the rate NIS at ``rate_t_s``; ``att_rms_deg``),
-    with ``extras(sim, i)``'s entries added when given.
+    ``t_fix_s``, the glitched fixes NaN; the rate NIS at ``rate_t_s``; ``att_rms_deg``
+    and ``rate_rms_dps``), with ``extras(sim, i)``'s entries added when given. With
+    ``smooth`` the NEES and RMS are the smoothed estimates' (no angle of attack), and
+    ``filter_att_rms_deg`` and ``filter_rate_rms_dps`` the filter's; the NIS stay the
+    filter's own.
     """
     sim = simulate_flight(scn, i)
     try:
@@ -52,12 +62,14 @@ def one_run(scn: FlightScenario, i: int, method: str, extras: RunExtras | None =
             compensation=method,
             true_layout=sim.true_layout(),
             truth=sim.truth,
+            smooth=smooth,
         )
     except CovarianceError as exc:
         return {"run": i, "diverged": str(exc)}
-    errs = run_errors(res.estimates, sim.truth)
-    ne = {k: v.astype(np.float32) for k, v in nees(errs, res.estimates.cov_nav).items()}
-    ne_aoa = aoa_nees(res.estimates, sim.truth)
+    est = res.smoothed if smooth else res.estimates
+    errs = run_errors(est, sim.truth)
+    ne = {k: v.astype(np.float32) for k, v in nees(errs, est.cov_nav).items()}
+    ne_aoa = aoa_nees(est, sim.truth)
     if ne_aoa is not None:
         ne["aoa"] = ne_aoa.astype(np.float32)
     inn = res.innovations
@@ -74,11 +86,23 @@ def one_run(scn: FlightScenario, i: int, method: str, extras: RunExtras | None =
         "rate_nis": res.rate_nis,
         "rate_t_s": res.rate_nis_t_s,
         "rate_dim": res.rate_dim,
-        "att_rms_deg": float(np.rad2deg(np.sqrt(np.mean(np.sum(errs.att_ned_rad**2, axis=1))))),
+        **_rms(errs),
     }
+    if smooth:
+        filt = _rms(run_errors(res.estimates, sim.truth))
+        out.update({f"filter_{k}": v for k, v in filt.items()})
+        out["smoother_restarts"] = res.counts[RESTARTS]
     if extras is not None:
         out.update(extras(sim, i))
     return out
+
+
+def _rms(errs) -> dict[str, float]:
+    """Attitude (deg) and rate (deg/s) RMS of a run's errors, vector norms over the run."""
+    return {
+        "att_rms_deg": float(np.rad2deg(np.sqrt(np.mean(np.sum(errs.att_ned_rad**2, axis=1))))),
+        "rate_rms_dps": float(np.rad2deg(np.sqrt(np.mean(np.sum(errs.rate_b_rps**2, axis=1))))),
+    }
 
 
 def monte_carlo_runs(
@@ -309,6 +333,7 @@ class RunningSummary:
         self._means_from: dict[str, dict[int, float]] = {}
         self._kept_from: dict[str, np.ndarray] = {}
         self._att: dict[int, float] = {}
+        self._smoothing: dict[int, tuple[float, float, int]] = {}  # att, rate ratio; restarts
         self._rate_dim = 0
         self.diverged: list[dict] = []
 
@@ -340,6 +365,12 @@ class RunningSummary:
             if self.from_s is not None:
                 self._means_from[name][i] = float(finite_mean(values[self._kept_from[name]]))
         self._att[i] = rec["att_rms_deg"]
+        if "filter_att_rms_deg" in rec:
+            self._smoothing[i] = (
+                rec["att_rms_deg"] / rec["filter_att_rms_deg"],
+                rec["rate_rms_dps"] / rec["filter_rate_rms_dps"],
+                rec["smoother_restarts"],
+            )
         if self.save_dir is not None:
             flat = {f"nees_{k}": v for k, v in rec["nees"].items()}
             for key in ("t_s", "nis_pos", "nis_vel", "t_fix_s", "rate_nis", "rate_t_s"):
@@ -392,6 +423,15 @@ class RunningSummary:
             out["profile"] = nees_profile(self.t_s, averages, profile_s)
         out["target"] = target_verdict(out["blocks"])
         out["att_rms_deg_median"] = float(np.median([self._att[i] for i in sorted(self._att)]))
+        if self._smoothing:
+            att, rate, restarts = np.array(list(self._smoothing.values())).T
+            out["smoothed"] = {
+                "att_rms_ratio_median": float(np.median(att)),
+                "att_rms_ratio_max": float(np.max(att)),
+                "rate_rms_ratio_median": float(np.median(rate)),
+                "rate_rms_ratio_max": float(np.max(rate)),
+                "restarts": int(restarts.sum()),
+            }
         return out, averages
 
 
@@ -409,6 +449,7 @@ def consistency(
     from_s: float | None = None,
     scheduler: str | None = None,
     save_dir: str | Path | None = None,
+    smooth: bool = False,
 ) -> dict:
     """NEES/NIS over ``runs`` Monte Carlo runs; share of epochs inside the 95 % bounds.
 
@@ -424,9 +465,11 @@ def consistency(
     ``profile_s`` adds ``profile``: the NEES blocks' means over windows of that
     many seconds (:func:`nees_profile`).
     ``target`` is the target's verdict on ``blocks`` (:func:`target_verdict`).
+    ``smooth`` judges the smoothed estimates (:func:`one_run`) and adds ``smoothed``:
+    the median and worst ratios of their attitude and rate RMS to the filter's.
     """
     return consistency_series(
-        scn, runs, method, workers, progress, profile_s, from_s, scheduler, save_dir
+        scn, runs, method, workers, progress, profile_s, from_s, scheduler, save_dir, smooth
     )[0]
 
 
@@ -440,6 +483,7 @@ def consistency_series(
     from_s: float | None = None,
     scheduler: str | None = None,
     save_dir: str | Path | None = None,
+    smooth: bool = False,
 ) -> tuple[dict, np.ndarray, dict[str, np.ndarray]]:
     """:func:`consistency`'s report, the epochs' times (E,) and each NEES block's
     per-epoch average over the runs (E,): what ``ngnav consistency --plot`` draws.
@@ -454,7 +498,7 @@ def consistency_series(
         raise ValueError(f"runs must be at least 1, got {runs}")
     acc = RunningSummary(from_s, save_dir)
     failures = run_campaign(
-        partial(one_run, scn, method=method),
+        partial(one_run, scn, method=method, smooth=smooth),
         range(runs),
         acc.add,
         workers=workers,

@@ -220,6 +220,8 @@ class NavFilter(
         #: Spacing of the last two GPS fixes received, s (NaN before the second).
         self.fix_interval_s = float("nan")
         self.body_velocity_log: list[BodyVelocityRecord] | None = None
+        #: A smoother's lag-one clone (:class:`filters.smoother.LagOne`), or None.
+        self.lag = None
         self.quad_pairs = np.asarray(self.quad_pairs, dtype=int).reshape(-1, 2)
         self.antenna_b_m = np.asarray(self.antenna_b_m, dtype=float).reshape(3)
         n_dr = 0
@@ -401,5 +403,7 @@ class NavFilter(
         filterpy's update (:func:`filters.updates.update_correlated`, with the noise
         correlated with the prior as ``meas.cross`` where there is such a correlation).
         """
+        if self.lag is not None:
+            self.lag.update(meas, self.P)
         self.x, self.P = update_correlated(self.x, self.P, meas.z, meas.R, meas.H, meas.cross)
         self._inject()

@@ -226,6 +226,8 @@ class NominalMixin:
         else:
             p[ATT, :] = ga @ p[ATT, :]
             p[:, ATT] = p[:, ATT] @ ga.T
+        if self.lag is not None:
+            self.lag.reset(ga, *((gvv, gvt) if body else ()))
         self.P = 0.5 * (p + p.T)
         self.x = np.zeros(self.x.shape[0])
 
@@ -258,6 +260,7 @@ class NominalMixin:
         self._consec_rejects = 0
         self._consec_vel_rejects = 0
         self.t_last_position_fix = self.t_s
+        self.counters.discontinuities += 1
         self.check_covariance("GPS reset")
 
     def set_heading(self, yaw_rad: float, sigma_rad: float) -> None:
@@ -271,6 +274,7 @@ class NominalMixin:
         p[8, 8] = sigma_rad**2
         self.P = p
         self._consec_slip_rejects = 0
+        self.counters.discontinuities += 1
         self.check_covariance("heading alignment")
 
     def reopen_attitude(self, tilt_sigma_rad: float, rate_sigma_rps: float) -> None:
@@ -293,4 +297,5 @@ class NominalMixin:
         self.P = p
         self._consec_vel_rejects = 0
         self.counters.attitude_reopens += 1
+        self.counters.discontinuities += 1
         self.check_covariance("attitude reopened")

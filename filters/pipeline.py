@@ -26,6 +26,7 @@ import numpy as np
 from filters.alignment import AlignmentMixin
 from filters.ekf import NavFilter
 from filters.noise import filter_noise
+from filters.smoother import RESTARTS, SmootherLog
 from filters.state import ATT, POS, RATE, VEL
 from filters.step import StepMixin
 from filters.stream import StreamMixin
@@ -92,6 +93,9 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
         :meth:`result` then holds the latest epoch only).
     body_velocity_log : list, optional
         As for :func:`run_filter`.
+    smooth : bool
+        Store what a Rauch-Tung-Striebel pass needs (:mod:`filters.smoother`) and
+        give :meth:`result` the smoothed estimates after :meth:`finish`.
 
     Raises
     ------
@@ -121,8 +125,11 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
         on_epoch=None,
         keep_estimates: bool = True,
         body_velocity_log: list[BodyVelocityRecord] | None = None,
+        smooth: bool = False,
     ) -> None:
         method = compensation or cfg.compensation.method
+        if smooth and not keep_estimates:
+            raise ValueError("smoothing needs the whole run's estimates (keep_estimates)")
         if method == "oracle" and (true_layout is None or truth is None):
             raise ValueError(
                 "compensation 'oracle' needs the true geometry and motion (simulations)"
@@ -212,6 +219,9 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
         self._rate_nis: list[float] = []
         self._rate_nis_t: list[float] = []
         self.n_fallbacks = 0
+        self.smooth = smooth
+        self.smoother: SmootherLog | None = None  # made at the start (the state's size)
+        self._smoothed: tuple[Estimates, int] | None = None
 
     def _record(self) -> None:
         nf = self.nf
@@ -282,6 +292,11 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
         acc = np.array([r[3:5] for r in self._inn], dtype=bool).reshape(-1, 2)
         innovations = GpsInnovations(inn[:, 0], inn[:, 1], inn[:, 2], acc[:, 0], acc[:, 1])
         counts = dict(self.counts)
+        smoothed = None
+        if self.smoother is not None and self.finished:
+            if self._smoothed is None:
+                self._smoothed = self._smooth()
+            smoothed, counts[RESTARTS] = self._smoothed
         counts.update(
             {
                 "blocks": nf.counters.blocks,
@@ -319,7 +334,16 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
             nf.layout.n,
             np.array(self._rate_nis_t),
             self.latest,
+            smoothed,
         )
+
+    def _smooth(self) -> tuple[Estimates, int]:
+        """The backward pass over the finished run: smoothed epochs, restarts."""
+        log = self.smoother
+        rows, restarts = log.smooth(self.nf.layout)
+        if len(rows) != len(self._rows):
+            raise RuntimeError(f"smoother: {len(rows)} epochs for {len(self._rows)} estimates")
+        return Estimates.from_rows([(*r, None, None, None) for r in rows]), restarts
 
 
 def run_filter(
@@ -334,6 +358,7 @@ def run_filter(
     bound: bool = False,
     progress=None,
     body_velocity_log: list[BodyVelocityRecord] | None = None,
+    smooth: bool = False,
 ) -> RunResult:
     """Run the GPS/array filter over a whole run (a :class:`Pipeline` fed in arrival order).
 
@@ -364,6 +389,8 @@ def run_filter(
         Every sideslip and angle-of-attack update is appended to it as a
         :class:`filters.vehicle_model.BodyVelocityRecord` (what
         ``python -m studies.remainder`` measures).
+    smooth : bool
+        Also smooth the run (:mod:`filters.smoother`): the result's ``smoothed``.
 
     Raises
     ------
@@ -392,14 +419,18 @@ def run_filter(
         truth=truth,
         bound=bound,
         body_velocity_log=body_velocity_log,
+        smooth=smooth,
     )
     try:
         _feed(pipe, samples, fixes, progress)
+        return pipe.result()
     except CovarianceError as exc:
         if pipe.started and pipe.n_epochs:
             exc.partial = pipe.result()
         raise
-    return pipe.result()
+    finally:
+        if pipe.smoother is not None and pipe._smoothed is None:
+            pipe.smoother.close()  # not smoothed: the run stopped
 
 
 def _feed(pipe: Pipeline, samples: ArraySamples, fixes: GpsFixes, progress) -> None:

@@ -19,6 +19,8 @@ class ProcessMixin:
         self, k: int, dt: float, c: np.ndarray, f_n: np.ndarray, sg: np.ndarray | None
     ) -> None:
         phi, q = self.propagation_matrices(k, dt, c, f_n, sg)
+        if self.lag is not None:
+            self.lag.start(self.P, phi)
         self.x, self.P = kf_predict(self.x, self.P, phi, q)
         self._symmetrise()
 

@@ -103,6 +103,9 @@ class StepMixin:
                     np.eye(3) * self._rest_sigma**2,
                     nf.rate_at_rest_model(),
                 )
+        log = self.smoother
+        if log is not None:
+            log.posterior(nf)
         w_blk = nf.propagate(xs[:, 0:3], xs[:, 3:6], dt, sg)
         if n_ok < kk or self._t_hold > 0.0:
             self._hold_noise(bad, dt)

@@ -113,6 +113,8 @@ class StreamMixin:
                 keep.append((idx, order, fix))
         self._pending = sorted(keep)
         self._run_blocks(final=True)
+        if self.smoother is not None:
+            self.smoother.posterior(self.nf)
         return self.n_epochs - n_before
 
     # ---------------------------------------------------------------- start

@@ -90,6 +90,7 @@ def run(
     *,
     compensation: str | None = None,
     use_gps: bool = True,
+    smooth: bool = False,
 ) -> RunResult:
     """Run the GPS/array filter over a whole run.
 
@@ -105,6 +106,9 @@ def run(
         Override ``config.compensation.method`` (``gm11``, ``line``, ``last``, ``none``).
     use_gps : bool
         False runs the array alone after initialisation.
+    smooth : bool
+        Also run the Rauch-Tung-Striebel pass (:mod:`filters.smoother`): the result's
+        ``smoothed`` holds the smoothed epochs with their covariance.
 
     Returns
     -------
@@ -122,7 +126,9 @@ def run(
         The filter diverged (``LostTrackError``: it lost its track); the exception's
         ``partial`` holds the estimates up to then.
     """
-    return run_filter(samples, fixes, config, compensation=compensation, use_gps=use_gps)
+    return run_filter(
+        samples, fixes, config, compensation=compensation, use_gps=use_gps, smooth=smooth
+    )
 
 
 def read_run(path: str | Path) -> RunInputs:
@@ -166,7 +172,7 @@ def summary(err: RunErrors) -> ErrorSummary:
 
 
 def pipeline_factory(
-    compensation: str | None = None, keep_estimates: bool = True
+    compensation: str | None = None, keep_estimates: bool = True, smooth: bool = False
 ) -> Callable[[RunConfig, Callable[[NavEstimate], None]], Pipeline]:
     """A factory that builds the GPS/array filter for a MAVLink stream session.
 
@@ -176,6 +182,8 @@ def pipeline_factory(
         Override the configuration's compensation (``gm11``, ``line``, ``last``, ``none``).
     keep_estimates : bool
         Keep every epoch for the run's result (False for an endless live link).
+    smooth : bool
+        Smooth the run once it is finished (a tlog replay; needs ``keep_estimates``).
 
     Returns
     -------
@@ -186,7 +194,11 @@ def pipeline_factory(
 
     def make(cfg: RunConfig, on_epoch: Callable[[NavEstimate], None]) -> Pipeline:
         return Pipeline(
-            cfg, compensation=compensation, on_epoch=on_epoch, keep_estimates=keep_estimates
+            cfg,
+            compensation=compensation,
+            on_epoch=on_epoch,
+            keep_estimates=keep_estimates,
+            smooth=smooth,
         )
 
     return make

@@ -348,7 +348,8 @@ class RunResult:
     ``rate_nis_t_s`` holds the time of each ``rate_nis`` value (s). ``estimates``
     keep each epoch's navigation covariance (12 x 12); ``final`` is the last epoch's
     whole record, with the full covariance and the estimated biases, sensor positions
-    and angle-of-attack states.
+    and angle-of-attack states. ``smoothed`` holds the smoothed epochs of a run made
+    with ``smooth=True`` (the same epochs; no angle of attack, no bound).
     """
 
     estimates: Estimates
@@ -360,6 +361,7 @@ class RunResult:
     state_size: int = 0
     rate_nis_t_s: np.ndarray | None = None
     final: NavEstimate | None = None
+    smoothed: Estimates | None = None
 
 
 @dataclass(frozen=True)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -28,6 +29,7 @@ COUNT_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("vehicle models", ("sideslip", "angle-of-attack", "vehicle-model")),
     ("rest", ("zero-rate",)),
     ("recovery", ("heading resets", "attitude reopened")),
+    ("smoother", ("smoother",)),
 )
 
 
@@ -111,16 +113,7 @@ def _print_reports(reports: dict[str, dict[str, int]]) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from filters.evaluate import run_errors, summarise
-    from filters.output import (
-        nis_path,
-        npz_path,
-        write_estimates_csv,
-        write_estimates_npz,
-        write_nis_csv,
-    )
     from filters.pipeline import run_filter
     from ngnav.api import pipeline_factory
     from ngnav.cli.stream import run_to_tlog
@@ -134,6 +127,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         out = Path(args.out)
     else:
         out = src.with_suffix(".estimates.csv") if is_tlog(src) else src / "estimates.csv"
+    if args.smooth and is_tlog(out):
+        raise ValueError("--smooth writes CSV and NPZ estimates; give --out NAME.csv")
     if args.no_gps and (is_tlog(src) or is_tlog(out)):
         raise ValueError("--no-gps is for CSV runs; a tlog replay uses every input it holds")
     if not src.exists():
@@ -151,14 +146,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         frames = sum(rr.frames_sent.values())
         print(f"run {src}: {res.estimates.t_s.shape[0]} estimates, {frames} frames -> {out}")
     elif is_tlog(src):
-        rr = replay_tlog(src, pipeline_factory(args.compensation))
+        rr = replay_tlog(src, pipeline_factory(args.compensation, smooth=args.smooth))
         if rr.result is None:
             raise ValueError(f"{src}: the filter did not run: {rr.failure}")
         res, cfg, failure = rr.result, rr.config, rr.failure
         reports = {str(src): rr.counts}
-        write_estimates_csv(out, res.estimates, cfg)
-        write_nis_csv(nis_path(out), res.innovations)
-        write_estimates_npz(npz_path(out), res)
+        _write_estimates(out, res, cfg)
         print(f"run {src}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
     else:
         inp = read_run(src)
@@ -172,24 +165,31 @@ def cmd_run(args: argparse.Namespace) -> int:
                     compensation=args.compensation,
                     use_gps=not args.no_gps,
                     progress=bar,
+                    smooth=args.smooth,
                 )
         except CovarianceError as exc:
             if exc.partial is None:
                 raise
             res, failure = exc.partial, str(exc)
-        write_estimates_csv(out, res.estimates, cfg)
-        write_nis_csv(nis_path(out), res.innovations)
-        write_estimates_npz(npz_path(out), res)
+        _write_estimates(out, res, cfg)
         print(f"run {src}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
     _print_reports(reports)
     _print_counts(res.counts)
+    if res.smoothed is not None:
+        print(f"  smoothed -> {smoothed_path(out)} (and .npz)")
+    elif args.smooth and failure:
+        print("  not smoothed: the filter stopped before the run's end")
     if truth_path(src).exists():
-        s = summarise(run_errors(res.estimates, read_truth_csv(truth_path(src))))
-        print(
-            f"  against {truth_path(src).name}: horizontal RMS {s.horiz_rms_m:.3f} m, vertical "
-            f"{s.vert_rms_m:.3f} m, roll/pitch/yaw RMS {s.roll_rms_deg:.3f}/"
-            f"{s.pitch_rms_deg:.3f}/{s.yaw_rms_deg:.3f} deg"
-        )
+        truth = read_truth_csv(truth_path(src))
+        for what, est in (("filter", res.estimates), ("smoothed", res.smoothed)):
+            if est is None:
+                continue
+            s = summarise(run_errors(est, truth))
+            print(
+                f"  {what} against {truth_path(src).name}: horizontal RMS {s.horiz_rms_m:.3f} m, "
+                f"vertical {s.vert_rms_m:.3f} m, roll/pitch/yaw RMS {s.roll_rms_deg:.3f}/"
+                f"{s.pitch_rms_deg:.3f}/{s.yaw_rms_deg:.3f} deg"
+            )
     if failure:
         print(
             f"ngnav run: the filter stopped: {failure}; the {res.estimates.t_s.shape[0]} "
@@ -199,6 +199,33 @@ def cmd_run(args: argparse.Namespace) -> int:
         )
         return EXIT_DIVERGED
     return 0
+
+
+def smoothed_path(estimates_path) -> Path:
+    """Where ``--smooth`` writes beside the estimates ``NAME.csv``: ``NAME.smoothed.csv``."""
+    p = Path(estimates_path)
+    return p.with_name(f"{p.stem}.smoothed.csv")
+
+
+def _write_estimates(out: Path, res, cfg) -> None:
+    """The run's estimates, NIS and NPZ beside them; the smoothed ones when there are."""
+    from dataclasses import replace
+
+    from filters.output import (
+        nis_path,
+        npz_path,
+        write_estimates_csv,
+        write_estimates_npz,
+        write_nis_csv,
+    )
+
+    write_estimates_csv(out, res.estimates, cfg)
+    write_nis_csv(nis_path(out), res.innovations)
+    write_estimates_npz(npz_path(out), res)
+    if res.smoothed is not None:
+        sm = smoothed_path(out)
+        write_estimates_csv(sm, res.smoothed, cfg)
+        write_estimates_npz(npz_path(sm), replace(res, estimates=res.smoothed))
 
 
 def _check_writable(out) -> None:
@@ -283,5 +310,10 @@ def add_parsers(sub) -> None:
         "--compensation", choices=["gm11", "none", "line", "last"], help="override the config"
     )
     p.add_argument("--no-gps", action="store_true", help="array alone after initialisation")
+    p.add_argument(
+        "--smooth",
+        action="store_true",
+        help="also smooth the run (Rauch-Tung-Striebel): NAME.smoothed.csv and .npz",
+    )
     add_output_args(p)
     p.set_defaults(func=cmd_run)

@@ -1,0 +1,260 @@
+"""Rauch-Tung-Striebel smoothing of a finished run (``ngnav run --smooth``).
+
+The filter's blocks are not the textbook's predict-then-update: a block's rate
+measurement has noise correlated with the block's own propagation noise, and every
+update is followed by the error's reset (its Jacobian). So the forward pass carries,
+through each block, the joint of the state at the block's start with the current one
+(a lag-one clone, :class:`LagOne`): at the propagation their cross-covariance is
+``P_j F^T``, and every update and reset on the current state acts on it exactly as
+the filter acts on its own covariance. At the block's end that gives ``x_{j|j+1}``
+(the start's estimate given the block's measurements: ``x_j [+] d``), its covariance
+``P_{j|j+1}`` and the cross-covariance ``X`` with the posterior ``x_{j+1}, P_{j+1}``.
+Backwards, from the last epoch (smoothed = filtered), the Gaussian conditioning
+``x_j | x_{j+1}`` (the future data tell ``x_j`` nothing more once ``x_{j+1}`` is
+known):
+
+- ``C = X P_{j+1}^-1``;
+- ``x^s_j = x_j [+] (d + C (x^s_{j+1} [-] x_{j+1}))``;
+- ``P^s_j = P_{j|j+1} + C (P^s_{j+1} - P_{j+1}) C^T``.
+
+With independent noise and no resets this is the textbook RTS pass (filterpy's
+``rts_smoother``; tests/test_smoother.py checks both that and an exact batch solution
+with correlated noise). ``[+]`` and ``[-]`` are the filter's own error injection:
+additive for every block but the attitude, the NED (left) rotation
+``q = exp(dtheta) q``. A covariance edit that is not a measurement (a position put on
+a fix, a heading set, an attitude reopened;
+:attr:`filters.supervision.Counters.discontinuities`) breaks the chain: the epochs
+before it keep what the fixes up to it tell them, as if the run had ended there
+(counted). So does a posterior that is not positive definite.
+
+What a block stores (two n x n triangles, the n x n cross-covariance and the nominal
+state, 41 kB at n = 50) goes to an unnamed temporary file as the filter runs, so a
+long run's smoothing takes disk, not memory.
+"""
+
+from __future__ import annotations
+
+import tempfile
+
+import numpy as np
+from scipy.linalg import LinAlgError, cho_factor, cho_solve
+
+from filters.state import ATT, POS, RATE, VEL
+from filters.updates import Measurement
+from ngnav.rotation import quat_conjugate, quat_multiply, quat_rotate_by_rotvec, quat_to_rotvec
+
+#: Counter name of the smoother's restarts, in the run's counts.
+RESTARTS = "smoother restarts at a reset"
+
+
+class LagOne:
+    """The joint of the state at a block's start with the current state, through a block.
+
+    The filter calls :meth:`start` at its propagation, :meth:`update` before each
+    measurement update and :meth:`reset` with each reset's Jacobian.
+
+    Attributes
+    ----------
+    cross : array (n, n)
+        ``Cov(dx_start, dx_now)``.
+    p_start : array (n, n)
+        The start state's covariance given the measurements so far.
+    d_start : array (n,)
+        The start state's correction by those measurements (error coordinates).
+    """
+
+    def __init__(self) -> None:
+        self.cross: np.ndarray | None = None
+        self.p_start: np.ndarray | None = None
+        self.d_start: np.ndarray | None = None
+
+    def start(self, p: np.ndarray, phi: np.ndarray) -> None:
+        """A block's propagation by ``phi`` from the covariance ``p`` (before it)."""
+        self.cross = p @ phi.T
+        self.p_start = p.copy()
+        self.d_start = np.zeros(p.shape[0])
+
+    def update(self, meas: Measurement, p: np.ndarray) -> None:
+        """The measurement ``meas`` about to update the current state (prior ``p``)."""
+        if self.cross is None:
+            return
+        h = meas.H
+        s = meas.innovation_cov(p)
+        pht = p @ h.T
+        if meas.cross is not None:
+            pht = pht + meas.cross
+        # the start's gain: its covariance with the innovation is X H^T (the noise is
+        # independent of the start's error)
+        kc = np.linalg.solve(s, (self.cross @ h.T).T).T
+        k = np.linalg.solve(s, pht.T).T
+        self.d_start += kc @ meas.z
+        self.p_start -= kc @ s @ kc.T
+        self.cross -= kc @ (s @ k.T)
+
+    def reset(
+        self, ga: np.ndarray, gvv: np.ndarray | None = None, gvt: np.ndarray | None = None
+    ) -> None:
+        """The current state's reset after an update: the attitude's Jacobian ``ga`` (and
+        the body-frame velocity's ``gvv``, ``gvt``), applied to the cross-covariance's
+        columns as the filter applies them to its covariance (:meth:`NavFilter._inject`)."""
+        if self.cross is None:
+            return
+        x = self.cross
+        cols_t = x[:, ATT] @ ga.T
+        if gvv is not None:
+            x[:, VEL] = x[:, VEL] @ gvv.T + x[:, ATT] @ gvt.T
+        x[:, ATT] = cols_t
+
+
+class SmootherLog:
+    """The forward pass's stores for the backward pass, spooled to a temporary file.
+
+    Give the filter :attr:`lag` (``nf.lag``) and call :meth:`posterior` at the start of
+    every block (before its propagation) and once at the end of the run; then
+    :meth:`smooth`.
+
+    Parameters
+    ----------
+    n : int
+        Size of the error state.
+    n_extra : int
+        Nominal values beyond the error state's size (1: the quaternion's fourth).
+    """
+
+    def __init__(self, n: int, n_extra: int = 1) -> None:
+        self.n = n
+        self.lag = LagOne()
+        self._iu = np.triu_indices(n)
+        self._m = n + n_extra  # nominal values
+        ntri = self._iu[0].size
+        # posterior rows: t, nominal, discontinuities, P triangle
+        self._post_len = 2 + self._m + ntri
+        # lag rows: d_start, P_start triangle, cross
+        self._lag_len = n + ntri + n * n
+        self._post = tempfile.TemporaryFile()
+        self._lags = tempfile.TemporaryFile()
+        self.n_posteriors = 0
+        self.n_lags = 0
+
+    @staticmethod
+    def nominal(nf) -> np.ndarray:
+        """The filter's nominal state as one vector (pos, vel, q, w, bias, dr, aoa)."""
+        aoa = [nf.aoa_b, nf.aoa_k][: nf.layout.n_aoa]
+        return np.concatenate([nf.pos, nf.vel, nf.q, nf.w, nf.bias, nf.dr, aoa])
+
+    def posterior(self, nf) -> None:
+        """Store the filter's state now: the end of one block and the start of the next."""
+        lag = self.lag
+        if lag.cross is not None:
+            self._lags.write(lag.d_start.tobytes())
+            self._lags.write(lag.p_start[self._iu].tobytes())
+            self._lags.write(lag.cross.tobytes())
+            self.n_lags += 1
+            lag.cross = None
+        head = np.concatenate([[nf.t_s], self.nominal(nf), [nf.counters.discontinuities]])
+        self._post.write(head.tobytes())
+        self._post.write(nf.P[self._iu].tobytes())
+        self.n_posteriors += 1
+
+    def _rows(self, f, length: int, count: int) -> np.ndarray:
+        f.flush()
+        if count == 0:
+            return np.empty((0, length))
+        return np.memmap(f, dtype=np.float64, mode="r", shape=(count, length))
+
+    def _full(self, tri: np.ndarray) -> np.ndarray:
+        p = np.zeros((self.n, self.n))
+        p[self._iu] = tri
+        return p + np.triu(p, 1).T
+
+    def smooth(self, layout) -> tuple[list[tuple], int]:
+        """Run the backward pass over the stored blocks (and delete the stores).
+
+        Parameters
+        ----------
+        layout : filters.state.StateLayout
+            The filter's state layout (for the bias block's size).
+
+        Returns
+        -------
+        rows : list of tuple
+            One per posterior (time order): ``(t_s, pos, vel, q, w, bias, cov_nav)``,
+            the smoothed nominal and its 12 x 12 navigation covariance.
+        restarts : int
+            Blocks whose chain a reset (or a posterior not positive definite) broke.
+        """
+        if self.n_posteriors != self.n_lags + 1:
+            raise ValueError(f"smoother: {self.n_posteriors} posteriors for {self.n_lags} blocks")
+        m, n = self._m, self.n
+        post = self._rows(self._post, self._post_len, self.n_posteriors)
+        lags = self._rows(self._lags, self._lag_len, self.n_lags)
+        ntri = self._iu[0].size
+        nb = layout.bias.stop - layout.bias.start
+        rows: list[tuple] = [None] * self.n_posteriors
+        nxt = post[-1]
+        x_next, p_next = np.array(nxt[1 : 1 + m]), self._full(nxt[2 + m :])
+        xs, ps = x_next, p_next
+        rows[-1] = _row(nxt[0], xs, ps, nb)
+        restarts = 0
+        for j in range(self.n_lags - 1, -1, -1):
+            a = post[j]
+            xa = np.array(a[1 : 1 + m])
+            broken = nxt[1 + m] != a[1 + m]
+            if not broken:
+                b = lags[j]
+                try:
+                    # C^T = P_{j+1}^-1 X^T
+                    ct = cho_solve(cho_factor(p_next), b[n + ntri :].reshape(n, n).T)
+                except (LinAlgError, ValueError):
+                    broken = True
+            if broken:
+                restarts += 1
+                xs, ps = xa, self._full(a[2 + m :])
+            else:
+                c = ct.T
+                xs = boxplus(xa, b[0:n] + c @ boxminus(xs, x_next))
+                ps = self._full(b[n : n + ntri]) + c @ (ps - p_next) @ ct
+                ps = 0.5 * (ps + ps.T)
+            rows[j] = _row(a[0], xs, ps, nb)
+            nxt = a
+            x_next, p_next = xa, self._full(a[2 + m :])
+        del post, lags, nxt, a
+        self.close()
+        return rows, restarts
+
+    def close(self) -> None:
+        """Delete the temporary stores."""
+        self._post.close()
+        self._lags.close()
+
+
+def _row(t: float, x: np.ndarray, p: np.ndarray, nb: int) -> tuple:
+    """One smoothed epoch: ``(t_s, pos, vel, q, w, bias, cov_nav)``."""
+    return (
+        float(t),
+        x[0:3].copy(),
+        x[3:6].copy(),
+        x[6:10].copy(),
+        x[10:13].copy(),
+        x[13 : 13 + nb].copy(),
+        p[:12, :12].copy(),
+    )
+
+
+def boxplus(x: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """The nominal vector ``x`` (n + 1,) corrected by the error ``e`` (n,), as the filter
+    injects it (attitude ``q <- exp(dtheta) q``, everything else added)."""
+    out = np.empty_like(x)
+    out[0:6] = x[0:6] + e[POS.start : VEL.stop]
+    out[6:10] = quat_rotate_by_rotvec(x[6:10], e[ATT], left=True)
+    out[10:] = x[10:] + e[RATE.start :]
+    return out
+
+
+def boxminus(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The error ``e`` with ``x = y [+] e`` (:func:`boxplus`), (n,)."""
+    e = np.empty(x.shape[0] - 1)
+    e[POS.start : VEL.stop] = x[0:6] - y[0:6]
+    e[ATT] = quat_to_rotvec(quat_multiply(x[6:10], quat_conjugate(y[6:10])))
+    e[RATE.start :] = x[10:] - y[10:]
+    return e

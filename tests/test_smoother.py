@@ -1,0 +1,238 @@
+"""The Rauch-Tung-Striebel pass (filters.smoother) against filterpy's own smoother,
+and ``ngnav run --smooth`` end to end."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from filterpy.kalman import predict as kf_predict
+from filterpy.kalman import rts_smoother
+
+from filters.output import read_estimates_csv, read_estimates_npz
+from filters.smoother import SmootherLog, boxminus, boxplus
+from filters.state import ATT, N_NAV, StateLayout
+from filters.updates import Measurement, update_correlated
+from ngnav.rotation import quat_from_rotvec
+
+LAYOUT = StateLayout(3, 0, 0)  # 12 navigation states and 9 biases
+
+
+class LinearFilter(SimpleNamespace):
+    """A stand-in for the navigation filter whose nominal state is a linear KF's mean."""
+
+    def set_mean(self, x: np.ndarray) -> None:
+        self.pos, self.vel = x[0:3].copy(), x[3:6].copy()
+        self.q = quat_from_rotvec(x[ATT])
+        self.w, self.bias = x[9:12].copy(), x[12:].copy()
+
+
+def _fake(n: int) -> LinearFilter:
+    nf = LinearFilter(
+        layout=LAYOUT,
+        counters=SimpleNamespace(discontinuities=0),
+        dr=np.zeros(0),
+        aoa_b=0.0,
+        aoa_k=0.0,
+        t_s=0.0,
+        P=np.eye(n),
+    )
+    nf.set_mean(np.zeros(n))
+    return nf
+
+
+def _linear_run(steps: int, break_at: int | None = None, correlated: bool = False):
+    """A linear-Gaussian run through filterpy, logged as the pipeline logs its blocks.
+
+    F is the identity below its navigation rows (as the navigation filter's), the
+    attitude is neither driven, coupled nor measured (its mean stays 0, the
+    exponential map exact), everything else is random. With ``correlated`` each
+    measurement's noise is correlated with the propagation noise of the step before it
+    (as the rate products' are with their block's). Returns the log, the filter's
+    posteriors, F, Q, H, R, the noise cross-covariance and the measurements.
+    """
+    rng = np.random.default_rng(7)
+    n, nz = LAYOUT.n, 6
+    keep = np.ones(n, dtype=bool)
+    keep[ATT] = False
+    f = np.eye(n)
+    f[:N_NAV] += 0.05 * rng.standard_normal((N_NAV, n))
+    f[ATT, :] = f[:, ATT] = 0.0
+    f[ATT, ATT] = np.eye(3)
+    g = rng.standard_normal((n + nz, n + nz)) * 0.1
+    joint = g @ g.T + 1e-2 * np.eye(n + nz)  # [[Q, M], [M^T, R]]
+    joint[ATT, :] = joint[:, ATT] = 0.0
+    joint[ATT, ATT] = 1e-4 * np.eye(3)
+    q, r = joint[:n, :n], joint[n:, n:]
+    m = joint[:n, n:] if correlated else np.zeros((n, nz))
+    joint[:n, n:], joint[n:, :n] = m, m.T
+    h = rng.standard_normal((nz, n))
+    h[:, ATT] = 0.0
+    x, p = np.zeros(n), np.eye(n)
+    nf = _fake(n)
+    log = SmootherLog(n)
+    nf.lag = log.lag
+    xs, ps, zs = [x.copy()], [p.copy()], []
+    truth = rng.standard_normal(n) * keep
+    chol = np.linalg.cholesky(joint)
+    for k in range(steps):
+        nf.P = p
+        nf.set_mean(x)
+        log.posterior(nf)
+        log.lag.start(p, f)
+        x, p = kf_predict(x, p, f, q)
+        wv = chol @ rng.standard_normal(n + nz)
+        truth = f @ truth + wv[:n]
+        z = h @ truth + wv[n:]
+        zs.append(z)
+        meas = Measurement(z - h @ x, h, r, m if correlated else None)
+        log.lag.update(meas, p)
+        x, p = update_correlated(x, p, z, r, h, meas.cross)
+        if k == break_at:
+            p = p + np.eye(n)  # a reset: not a measurement
+            nf.counters.discontinuities += 1
+        xs.append(x.copy())
+        ps.append(p.copy())
+    nf.P = p
+    nf.set_mean(x)
+    log.posterior(nf)
+    return log, np.array(xs), np.array(ps), (f, q, h, r, m, np.array(zs))
+
+
+def _batch(model, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """The exact smoother: every state given every measurement, by Gaussian conditioning
+    of the whole run at once (prior x_0 ~ N(0, I); noises ``[w_k, v_k+1]`` joint)."""
+    f, q, h, r, m, zs = model
+    n, nz = f.shape[0], h.shape[0]
+    nu = n + steps * (n + nz)
+    sig = np.zeros((nu, nu))
+    sig[:n, :n] = np.eye(n)
+    blk = np.block([[q, m], [m.T, r]])
+    a = np.zeros(((steps + 1) * n, nu))  # states from the primitive noises
+    b = np.zeros((steps * nz, nu))  # measurements from them
+    a[:n, :n] = np.eye(n)
+    for k in range(steps):
+        o = n + k * (n + nz)
+        sig[o : o + n + nz, o : o + n + nz] = blk
+        a[(k + 1) * n : (k + 2) * n] = f @ a[k * n : (k + 1) * n]
+        a[(k + 1) * n : (k + 2) * n, o : o + n] += np.eye(n)
+        b[k * nz : (k + 1) * nz] = h @ a[(k + 1) * n : (k + 2) * n]
+        b[k * nz : (k + 1) * nz, o + n : o + n + nz] += np.eye(nz)
+    sxz = a @ sig @ b.T
+    szz = b @ sig @ b.T
+    gain = np.linalg.solve(szz, sxz.T).T
+    mean = gain @ zs.ravel()
+    cov = a @ sig @ a.T - gain @ sxz.T
+    means = mean.reshape(steps + 1, n)
+    covs = np.array([cov[k * n : (k + 1) * n, k * n : (k + 1) * n] for k in range(steps + 1)])
+    return means, covs
+
+
+def _as_state(row: tuple) -> np.ndarray:
+    _t, pos, vel, quat, w, bias, _cov = row
+    x = np.concatenate([pos, vel, np.zeros(3), w, bias])
+    x[ATT] = boxminus(
+        np.concatenate([np.zeros(6), quat, np.zeros(x.size - 9)]),
+        np.concatenate([np.zeros(6), [1.0, 0, 0, 0], np.zeros(x.size - 9)]),
+    )[ATT]
+    return x
+
+
+def test_equals_filterpy_rts_smoother_on_a_linear_run():
+    steps = 40
+    log, xs, ps, (f, q, *_) = _linear_run(steps)
+    rows, restarts = log.smooth(LAYOUT)
+    log.close()
+    assert restarts == 0 and len(rows) == steps + 1
+    # filterpy's smoother over the same posteriors (its Fs[k + 1] moves epoch k to k + 1)
+    x_ref, p_ref, _, _ = rts_smoother(
+        xs, ps, np.array([f] * (steps + 1)), np.array([q] * (steps + 1))
+    )
+    got = np.array([_as_state(r) for r in rows])
+    np.testing.assert_allclose(got, x_ref, rtol=0, atol=1e-9)
+    cov = np.array([r[6] for r in rows])
+    np.testing.assert_allclose(cov, p_ref[:, :12, :12], rtol=0, atol=1e-9)
+    # the smoother gained: every epoch but the last is tighter than the filter's
+    trace = np.trace(cov, axis1=1, axis2=2)
+    assert np.all(trace[:-1] < np.trace(ps[:-1, :12, :12], axis1=1, axis2=2))
+
+
+def test_equals_the_batch_solution_with_correlated_noise():
+    steps = 15
+    log, xs, ps, model = _linear_run(steps, correlated=True)
+    rows, restarts = log.smooth(LAYOUT)
+    assert restarts == 0
+    means, covs = _batch(model, steps)
+    np.testing.assert_allclose(np.array([_as_state(r) for r in rows]), means, atol=1e-9)
+    np.testing.assert_allclose(np.array([r[6] for r in rows]), covs[:, :12, :12], atol=1e-9)
+    # the textbook pass, blind to the correlation, is not the answer here
+    f, q = model[0], model[1]
+    x_ref, _, _, _ = rts_smoother(xs, ps, np.array([f] * (steps + 1)), np.array([q] * (steps + 1)))
+    assert np.max(np.abs(x_ref - means)) > 1e-3
+
+
+def test_a_reset_restarts_the_backward_pass():
+    log, xs, ps, (f, q, *_) = _linear_run(20, break_at=9)
+    rows, restarts = log.smooth(LAYOUT)
+    assert restarts == 1
+    # the reset sits between the posteriors of epochs 9 and 10: epoch 9 is the filter's own
+    np.testing.assert_allclose(_as_state(rows[9]), xs[9], atol=1e-12)
+    np.testing.assert_allclose(rows[9][6], ps[9][:12, :12], atol=1e-12)
+    # before it the smoother works on the first segment alone
+    x_ref, _, _, _ = rts_smoother(xs[:10], ps[:10], np.array([f] * 10), np.array([q] * 10))
+    np.testing.assert_allclose(_as_state(rows[3]), x_ref[3], atol=1e-9)
+
+
+def test_boxplus_inverts_boxminus_with_large_attitude_errors():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        x = rng.standard_normal(22)
+        y = rng.standard_normal(22)
+        x[6:10] = quat_from_rotvec(rng.uniform(-2, 2, 3))
+        y[6:10] = quat_from_rotvec(rng.uniform(-2, 2, 3))
+        back = boxplus(y, boxminus(x, y))
+        if back[6] * x[6] < 0:
+            back[6:10] *= -1
+        np.testing.assert_allclose(back, x, atol=1e-12)
+
+
+def _ngnav(*args: str, cwd=None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "ngnav", *args], capture_output=True, text=True, cwd=cwd
+    )
+
+
+@pytest.fixture(scope="module")
+def short_run(tmp_path_factory):
+    run = tmp_path_factory.mktemp("smooth") / "run"
+    # the array at 200 Hz: the whole flight in a few seconds
+    got = _ngnav(
+        "simulate", "--scenario", "tactical", "--set", "run.rate_hz=200", "--out", str(run)
+    )
+    assert got.returncode == 0, got.stderr
+    return run
+
+
+def test_run_smooth_writes_smoothed_estimates_better_than_the_filter(short_run):
+    got = _ngnav("run", str(short_run), "--smooth")
+    assert got.returncode == 0, got.stderr
+    filt = read_estimates_csv(short_run / "estimates.csv")
+    sm = read_estimates_csv(short_run / "estimates.smoothed.csv")
+    np.testing.assert_array_equal(sm.t_s, filt.t_s)
+    est, final = read_estimates_npz(short_run / "estimates.smoothed.npz")
+    assert est.cov_nav.shape == (sm.t_s.shape[0], 12, 12) and final is not None
+    lines = {
+        ln.split(" against")[0].strip(): ln for ln in got.stdout.splitlines() if "against" in ln
+    }
+    rms = {k: float(v.split("roll/pitch/yaw RMS ")[1].split("/")[0]) for k, v in lines.items()}
+    # fixed seed: the smoothed roll is at least twice as good as the filter's
+    assert rms["smoothed"] < 0.5 * rms["filter"], got.stdout
+
+
+def test_run_smooth_refuses_a_tlog_output(short_run, tmp_path):
+    got = _ngnav("run", str(short_run), "--smooth", "--out", str(tmp_path / "x.tlog"))
+    assert got.returncode != 0
+    assert "--smooth writes CSV and NPZ" in got.stderr and "Traceback" not in got.stderr
