@@ -88,12 +88,21 @@ def _gauge_directions(layout: ArrayLayout) -> np.ndarray:
     return g
 
 
-def axis_errors_in_calibration_frame(real_axes_b: np.ndarray, layout: ArrayLayout) -> np.ndarray:
-    """The axis-error angles (N, 2) of real sensing axes in the frame a static calibration
-    defines: the array turned by the common rotation that leaves the angles none.
+def calibration_frame(
+    real_axes_b: np.ndarray, layout: ArrayLayout
+) -> tuple[np.ndarray, np.ndarray]:
+    """The frame a static calibration defines for real sensing axes: the array turned by
+    the common rotation that leaves the axis-error angles none.
 
     What a static calibration recovers of a known array (a simulation's truth): the
     common rotation is unobservable at rest and belongs to the body frame, not to the axes.
+
+    Returns
+    -------
+    phi : array (3,)
+        The rotation vector (rad) taking body-frame vectors to the calibration frame.
+    a : array (N, 2)
+        The axis-error angles in that frame.
     """
     from scipy.spatial.transform import Rotation
 
@@ -110,7 +119,13 @@ def axis_errors_in_calibration_frame(real_axes_b: np.ndarray, layout: ArrayLayou
             [np.arctan2(np.sum(ur * e1, axis=1), ut), np.arctan2(np.sum(ur * e2, axis=1), ut)]
         )
         phi = phi - step @ a.ravel()
-    return a
+    return phi, a
+
+
+def axis_errors_in_calibration_frame(real_axes_b: np.ndarray, layout: ArrayLayout) -> np.ndarray:
+    """The axis-error angles (N, 2) of real sensing axes in the calibration frame
+    (:func:`calibration_frame`)."""
+    return calibration_frame(real_axes_b, layout)[1]
 
 
 def _axes(layout: ArrayLayout, a: np.ndarray) -> np.ndarray:

@@ -104,7 +104,8 @@ def test_calibrate_cli_writes_what_a_run_takes(tmp_path):
     run_cli("simulate", "--scenario", "uav-survey", "--calibration-recordings", str(d))
     out = run_cli("calibrate", str(d)).stdout
     assert "18 poses from 18 files" in out and re.search(r"chi-square per dof \d", out)
-    assert len([ln for ln in out.splitlines() if re.match(r"\s+\d+\s+-?\d", ln)]) == N
+    static_table = out.split("spin fit")[0]  # the positions' table follows it
+    assert len([ln for ln in static_table.splitlines() if re.match(r"\s+\d+\s+-?\d", ln)]) == N
     section = (d / "calibration.toml").read_text()
     flight = tmp_path / "flight"
     run_cli("simulate", "--scenario", "tactical", "--set", "run.rate_hz=200", "--out", str(flight))

@@ -65,7 +65,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         what = "one recording (array.csv)" if args.continuous else "18 poses (static/*.csv)"
         print(
             f"simulated the bench session of {scn.name} run {args.run_index}'s array: {what}, "
-            f"config.toml and truth_calibration.toml -> {out}"
+            f"{len(session.spins)} rate-table poses (spin/*.csv, *.toml), config.toml and "
+            f"truth_calibration.toml -> {out}"
         )
         if args.out is None and args.stream is None:
             return 0
@@ -283,7 +284,8 @@ def add_parsers(sub) -> None:
         "--calibration-recordings",
         metavar="DIR",
         help="also write the array's bench session for ngnav calibrate: DIR/config.toml and "
-        "18 still poses (static/*.csv), or one recording with --continuous",
+        "18 still poses (static/*.csv), or one recording with --continuous, and 9 rate-table "
+        "poses (spin/*.csv)",
     )
     p.add_argument(
         "--continuous",

@@ -6,6 +6,10 @@ with that run. The poses are the multi-position set (six faces, twelve edges,
 :func:`ngnav.calibration.multiposition_directions`); their orientations are not written:
 ``ngnav calibrate`` finds them. With ``continuous`` the session is one recording with
 minimum-jerk turns between the poses, for the still-segment detector.
+
+A rate-table session follows (:data:`SPIN_AXES`): the array mounted with each axis up on
+a vertical table spinning at a constant rate, the reference point a few millimetres off
+the table's axis, one recording per pose with its axis and rate.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ngnav.calibration import multiposition_directions
 from ngnav.conventions import G0_MPS2
@@ -22,7 +27,33 @@ from ngnav.records import ArraySamples
 from ngnav.runio import write_array_csv
 from ngnav.sim.flight_scenario import FlightScenario
 from ngnav.sim.simulate import draw_array
-from ngnav.static_calibration import axis_errors_in_calibration_frame
+from ngnav.static_calibration import calibration_frame
+
+#: The spin poses' table axes in the body frame: the three body axes and the six face
+#: diagonals (an axis across a sensor shows its position along its axis; the diagonals,
+#: oblique to every axis, show the rest: :mod:`ngnav.spin_calibration`).
+_SPIN = np.array(
+    [
+        [1, 0, 0],
+        [0, 1, 0],
+        [0, 0, 1],
+        [1, 1, 0],
+        [1, -1, 0],
+        [1, 0, 1],
+        [1, 0, -1],
+        [0, 1, 1],
+        [0, 1, -1],
+    ],
+    dtype=float,
+)
+SPIN_AXES = _SPIN / np.linalg.norm(_SPIN, axis=1, keepdims=True)
+#: The table's rate, deg/s, unless the sensors' range needs less (half the range at most).
+SPIN_RATE_DPS = 720.0
+#: The reference point's distance from the table's axis, m (a fixture's tolerance).
+SPIN_OFFSET_M = 0.005
+#: Each pose's table axis off the direction given for it, 1-sigma per direction, rad (the
+#: fixture's tolerance: ngnav.spin_calibration.SPIN_AXIS_SIGMA_RAD).
+SPIN_AXIS_ERROR_RAD = 0.001
 
 
 @dataclass(frozen=True)
@@ -40,6 +71,10 @@ class BenchSession:
         True zero offsets (the bias's mean over the poses) and real/nominal sensitivities.
     axis_error_rad : array (N, 2)
         True axis errors in the frame a static calibration defines.
+    spins : list of (str, ArraySamples, array (3,))
+        The rate-table poses: name, recording, rate vector (body, rad/s).
+    position_error_b_m : array (N, 3)
+        True positions, in the frame a static calibration defines, minus the nominal ones, m.
     """
 
     recordings: list[tuple[str, ArraySamples]]
@@ -47,6 +82,8 @@ class BenchSession:
     offset_mps2: np.ndarray
     scale: np.ndarray
     axis_error_rad: np.ndarray
+    spins: list[tuple[str, ArraySamples, np.ndarray]]
+    position_error_b_m: np.ndarray
 
 
 def _turn(up_a: np.ndarray, up_b: np.ndarray, n_s: int, dt: float):
@@ -106,6 +143,31 @@ def bench_session(
     clean = real.outputs(wd, G0_MPS2 * up_b, w)  # at rest the specific force is +g0 up
     out, _, bias = spec.simulate(clean, rate, scale_error, rng)
     t = np.arange(out.shape[0]) * dt
+    # then the rate table: each axis up in turn, spun; the reference point off its axis
+    r_max = float(np.max(np.linalg.norm(real.positions_b_m, axis=1))) + SPIN_OFFSET_M
+    room = 0.5 * spec.range_g * G0_MPS2 - G0_MPS2
+    omega = min(np.deg2rad(SPIN_RATE_DPS), np.sqrt(max(room, 0.0) / r_max))
+    n_spin = round(2 * seconds_per_pose * rate)
+    spin_rates, f_spin = [], []
+    for given in SPIN_AXES:
+        axis = given + np.cross(rng.normal(0.0, SPIN_AXIS_ERROR_RAD, 3), given)
+        axis /= np.linalg.norm(axis)
+        wv = omega * axis
+        d = np.cross(axis, rng.standard_normal(3))
+        d *= SPIN_OFFSET_M / np.linalg.norm(d)
+        spin_rates.append((wv, omega * given))
+        f_spin.append(G0_MPS2 * axis + np.cross(wv, np.cross(wv, d)))
+    w_s = np.repeat(np.array([true for true, _ in spin_rates]), n_spin, axis=0)
+    f_s = np.repeat(np.array(f_spin), n_spin, axis=0)
+    out_s, _, _ = spec.simulate(
+        real.outputs(np.zeros_like(w_s), f_s, w_s), rate, scale_error, rng, bias0_mps2=bias[-1]
+    )
+    t_s = t[-1] + (np.arange(out_s.shape[0]) + 1) * dt
+    cut = [slice(j * n_spin, (j + 1) * n_spin) for j in range(len(spin_rates))]
+    spins = [  # each with the rate vector as given (the table's nominal axis)
+        (f"spin_{j + 1:02d}", ArraySamples(t_s[c], out_s[c]), given)
+        for j, (c, (_, given)) in enumerate(zip(cut, spin_rates, strict=True))
+    ]
     if continuous:
         recordings = [("array", ArraySamples(t, out))]
     else:
@@ -132,18 +194,24 @@ def bench_session(
             "",
         ]
     )
+    phi, a_cal = calibration_frame(real.axes_b, nominal)
     return BenchSession(
         recordings,
         config,
         offset_mps2=bias[pose >= 0].mean(axis=0),
         scale=1.0 + scale_error,
-        axis_error_rad=axis_errors_in_calibration_frame(real.axes_b, nominal),
+        axis_error_rad=a_cal,
+        spins=spins,
+        position_error_b_m=Rotation.from_rotvec(phi).apply(np.array(real.positions_b_m))
+        - nominal.positions_b_m,
     )
 
 
 def write_bench_session(session: BenchSession, out_dir: str | Path) -> Path:
-    """Write ``config.toml`` and the recordings (``static/pose_NN.csv``, or ``array.csv``)
-    and ``truth_calibration.toml`` (the true offsets, scales and axis errors)."""
+    """Write ``config.toml``, the recordings (``static/pose_NN.csv``, or ``array.csv``),
+    the rate-table poses (``spin/spin_NN.csv`` with ``spin_NN.toml``: ``axis_b``,
+    ``rate_dps``) and ``truth_calibration.toml`` (the true offsets, scales, axis errors
+    and position errors)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.toml").write_text(session.config_text, encoding="utf-8")
@@ -153,6 +221,14 @@ def write_bench_session(session: BenchSession, out_dir: str | Path) -> Path:
         else:
             (out / "static").mkdir(exist_ok=True)
             write_array_csv(out / "static" / f"{name}.csv", samples)
+    (out / "spin").mkdir(exist_ok=True)
+    for name, samples, wv in session.spins:
+        write_array_csv(out / "spin" / f"{name}.csv", samples)
+        rate = float(np.linalg.norm(wv))
+        (out / "spin" / f"{name}.toml").write_text(
+            f"axis_b = {(wv / rate).tolist()!r}\nrate_dps = {float(np.rad2deg(rate))!r}\n",
+            encoding="utf-8",
+        )
     (out / "truth_calibration.toml").write_text(
         "\n".join(
             [
@@ -160,6 +236,8 @@ def write_bench_session(session: BenchSession, out_dir: str | Path) -> Path:
                 f"offset_mps2 = {session.offset_mps2.tolist()!r}",
                 f"scale = {session.scale.tolist()!r}",
                 f"axis_error_rad = {session.axis_error_rad.tolist()!r}",
+                "# the sensitive elements' true positions (in that frame) minus the nominal, m",
+                f"position_error_b_m = {session.position_error_b_m.tolist()!r}",
                 "",
             ]
         ),

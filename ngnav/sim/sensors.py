@@ -202,8 +202,11 @@ class AccelerometerSpec:
         rate_hz: float,
         scale_error: np.ndarray,
         rng: np.random.Generator,
+        bias0_mps2: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Outputs of the channels for true accelerations (T, N).
+
+        ``bias0_mps2`` (N,) continues a session whose biases stood there (no turn-on draw).
 
         Returns
         -------
@@ -217,7 +220,10 @@ class AccelerometerSpec:
         a = np.asarray(accel_true_mps2, dtype=float)
         t_n, n = a.shape
         dt = 1.0 / rate_hz
-        b0 = rng.normal(0.0, self.turn_on_bias_mps2(), n)
+        if bias0_mps2 is None:
+            b0 = rng.normal(0.0, self.turn_on_bias_mps2(), n)
+        else:
+            b0 = np.asarray(bias0_mps2, dtype=float)
         steps = rng.normal(0.0, self.bias_rw_mps2_rts() * np.sqrt(dt), (t_n, n))
         steps[0] = 0.0
         bias = b0 + np.cumsum(steps, axis=0)
