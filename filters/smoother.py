@@ -41,7 +41,14 @@ from scipy.linalg import LinAlgError, cho_factor, cho_solve
 
 from filters.state import ATT, POS, RATE, VEL
 from filters.updates import Measurement
-from ngnav.rotation import quat_conjugate, quat_multiply, quat_rotate_by_rotvec, quat_to_rotvec
+from ngnav.rotation import (
+    dcm_from_quat,
+    quat_conjugate,
+    quat_from_rotvec,
+    quat_multiply,
+    quat_rotate_by_rotvec,
+    quat_to_rotvec,
+)
 
 #: Counter name of the smoother's restarts, in the run's counts.
 RESTARTS = "smoother restarts at a reset"
@@ -127,8 +134,8 @@ class SmootherLog:
         self._iu = np.triu_indices(n)
         self._m = n + n_extra  # nominal values
         ntri = self._iu[0].size
-        # posterior rows: t, nominal, discontinuities, P triangle
-        self._post_len = 2 + self._m + ntri
+        # posterior rows: t, nominal, discontinuities, body-frame velocity error, P triangle
+        self._post_len = 3 + self._m + ntri
         # lag rows: d_start, P_start triangle, cross
         self._lag_len = n + ntri + n * n
         self._post = tempfile.TemporaryFile()
@@ -151,7 +158,8 @@ class SmootherLog:
             self._lags.write(lag.cross.tobytes())
             self.n_lags += 1
             lag.cross = None
-        head = np.concatenate([[nf.t_s], self.nominal(nf), [nf.counters.discontinuities]])
+        body = float(nf.in_body_frame()) if hasattr(nf, "in_body_frame") else 0.0
+        head = np.concatenate([[nf.t_s], self.nominal(nf), [nf.counters.discontinuities, body]])
         self._post.write(head.tobytes())
         self._post.write(nf.P[self._iu].tobytes())
         self.n_posteriors += 1
@@ -192,7 +200,7 @@ class SmootherLog:
         nb = layout.bias.stop - layout.bias.start
         rows: list[tuple] = [None] * self.n_posteriors
         nxt = post[-1]
-        x_next, p_next = np.array(nxt[1 : 1 + m]), self._full(nxt[2 + m :])
+        x_next, p_next = np.array(nxt[1 : 1 + m]), self._full(nxt[3 + m :])
         xs, ps = x_next, p_next
         rows[-1] = _row(nxt[0], xs, ps, nb)
         restarts = 0
@@ -209,15 +217,16 @@ class SmootherLog:
                     broken = True
             if broken:
                 restarts += 1
-                xs, ps = xa, self._full(a[2 + m :])
+                xs, ps = xa, self._full(a[3 + m :])
             else:
                 c = ct.T
-                xs = boxplus(xa, b[0:n] + c @ boxminus(xs, x_next))
+                e_next = boxminus(xs, x_next, bool(nxt[2 + m]))
+                xs = boxplus(xa, b[0:n] + c @ e_next, bool(a[2 + m]))
                 ps = self._full(b[n : n + ntri]) + c @ (ps - p_next) @ ct
                 ps = 0.5 * (ps + ps.T)
             rows[j] = _row(a[0], xs, ps, nb)
             nxt = a
-            x_next, p_next = xa, self._full(a[2 + m :])
+            x_next, p_next = xa, self._full(a[3 + m :])
         del post, lags, nxt, a
         self.close()
         return rows, restarts
@@ -241,20 +250,31 @@ def _row(t: float, x: np.ndarray, p: np.ndarray, nb: int) -> tuple:
     )
 
 
-def boxplus(x: np.ndarray, e: np.ndarray) -> np.ndarray:
+def boxplus(x: np.ndarray, e: np.ndarray, body: bool = False) -> np.ndarray:
     """The nominal vector ``x`` (n + 1,) corrected by the error ``e`` (n,), as the filter
-    injects it (attitude ``q <- exp(dtheta) q``, everything else added)."""
+    injects it: attitude ``q <- exp(dtheta) q``, everything else added, but with the
+    body-frame velocity error (``body``) ``v <- exp(dtheta) (v + xi_v - dtheta x v)``."""
     out = np.empty_like(x)
-    out[0:6] = x[0:6] + e[POS.start : VEL.stop]
-    out[6:10] = quat_rotate_by_rotvec(x[6:10], e[ATT], left=True)
+    dth = e[ATT]
+    out[0:3] = x[0:3] + e[POS]
+    if body:
+        out[3:6] = dcm_from_quat(quat_from_rotvec(dth)) @ (x[3:6] + e[VEL] + np.cross(x[3:6], dth))
+    else:
+        out[3:6] = x[3:6] + e[VEL]
+    out[6:10] = quat_rotate_by_rotvec(x[6:10], dth, left=True)
     out[10:] = x[10:] + e[RATE.start :]
     return out
 
 
-def boxminus(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def boxminus(x: np.ndarray, y: np.ndarray, body: bool = False) -> np.ndarray:
     """The error ``e`` with ``x = y [+] e`` (:func:`boxplus`), (n,)."""
     e = np.empty(x.shape[0] - 1)
-    e[POS.start : VEL.stop] = x[0:6] - y[0:6]
-    e[ATT] = quat_to_rotvec(quat_multiply(x[6:10], quat_conjugate(y[6:10])))
+    e[POS] = x[0:3] - y[0:3]
+    dth = quat_to_rotvec(quat_multiply(x[6:10], quat_conjugate(y[6:10])))
+    e[ATT] = dth
+    if body:
+        e[VEL] = dcm_from_quat(quat_from_rotvec(dth)).T @ x[3:6] - y[3:6] - np.cross(y[3:6], dth)
+    else:
+        e[VEL] = x[3:6] - y[3:6]
     e[RATE.start :] = x[10:] - y[10:]
     return e

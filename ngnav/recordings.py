@@ -80,12 +80,8 @@ def poses_from_files(
     noise_sigma_mps2: np.ndarray,
     bias_rw_mps2_rts: np.ndarray,
     range_mps2: float,
-    session_s: float = 0.0,
 ) -> Poses:
-    """One pose per recording (``(label, samples)``): its mean, if it is usable.
-
-    The bias walk's spread is over the recordings' time span, or ``session_s`` if longer
-    (a spin session's offsets come from the static poses before it)."""
+    """One pose per recording (``(label, samples)``): its mean, if it is usable."""
     noise = np.asarray(noise_sigma_mps2, dtype=float)
     means, counts, labels, skipped = [], [], [], []
     t_first, t_last = np.inf, -np.inf
@@ -104,7 +100,6 @@ def poses_from_files(
         counts.append(a.shape[0])
         labels.append(label + (f" ({n_bad} invalid samples left out)" if n_bad else ""))
         t_first, t_last = min(t_first, s.t_s[0]), max(t_last, s.t_s[-1])
-    t_last = max(t_last, t_first + session_s)
     return _poses(means, counts, labels, skipped, noise, bias_rw_mps2_rts, t_first, t_last)
 
 

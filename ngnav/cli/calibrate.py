@@ -54,10 +54,11 @@ def calibration_toml(cfg, cal, n_poses: int, spin=None, n_spin: int = 0) -> str:
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    from ngnav.cli import FractionBar
     from ngnav.recordings import poses_from_files, poses_from_recording
     from ngnav.runconfig import read_array_config
     from ngnav.runio import read_array_csv
-    from ngnav.spin_calibration import fit_spin_poses, read_spin_pose
+    from ngnav.spin_calibration import fit_spin_poses, offset_drift_var, read_spin_pose
     from ngnav.static_calibration import fit_static_poses
 
     d = Path(args.dir)
@@ -67,16 +68,21 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     n = cfg.layout.n_sensors
     noise = (cfg.noise_sigma_mps2, cfg.bias_rw_mps2_rts, cfg.range_mps2)
     files = sorted((d / "static").glob("*.csv")) if (d / "static").is_dir() else []
-    if files:
-        recs = [(p.name, read_array_csv(p, n)[0]) for p in files]
-        poses = poses_from_files(recs, *noise)
-        source = f"{len(files)} files in {d / 'static'}"
-    elif (d / "array.csv").is_file():
-        samples, _ = read_array_csv(d / "array.csv", n)
-        poses = poses_from_recording(samples, *noise)
-        source = f"the still stretches of {d / 'array.csv'}"
-    else:
+    spin_files = sorted((d / "spin").glob("*.csv")) if (d / "spin").is_dir() else []
+    if not files and not (d / "array.csv").is_file():
         raise ValueError(f"{d}: no recordings: give static/*.csv (one per pose) or array.csv")
+    paths = (files or [d / "array.csv"]) + spin_files
+    with FractionBar("read recordings") as bar:
+        read = {}
+        for j, p in enumerate(paths):
+            read[p] = read_array_csv(p, n)[0]
+            bar((j + 1) / len(paths))
+    if files:
+        poses = poses_from_files([(p.name, read[p]) for p in files], *noise)
+        source = f"{len(files)} files in {d / 'static'}"
+    else:
+        poses = poses_from_recording(read[d / "array.csv"], *noise)
+        source = f"the still stretches of {d / 'array.csv'}"
     k = poses.means_mps2.shape[0]
     if not args.json:
         print(f"ngnav calibrate: {k} poses from {source}")
@@ -85,23 +91,22 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if k == 0:
         raise ValueError(f"{d}: no usable pose ({len(poses.skipped)} skipped)")
     cal = fit_static_poses(poses.means_mps2, poses.sigma_mps2, cfg.layout)
-    spin_files = sorted((d / "spin").glob("*.csv")) if (d / "spin").is_dir() else []
     spin, spin_poses = None, None
     if spin_files:
         rates = {p.name: read_spin_pose(p) for p in spin_files}
-        recs = [(p.name, read_array_csv(p, n)[0]) for p in spin_files]
-        # the offsets come from the static poses: the bias walks over the whole session
-        t_all = [r.t_s for _, r in recs]
-        if files:
-            t_all += [read_array_csv(p, n)[0].t_s for p in files[:1] + files[-1:]]
-        elif (d / "array.csv").is_file():
-            t_all.append(samples.t_s)
-        span = max(float(t.max()) for t in t_all) - min(float(t.min()) for t in t_all)
-        spin_poses = poses_from_files(recs, *noise, session_s=span)
+        spin_poses = poses_from_files([(p.name, read[p]) for p in spin_files], *noise)
         if not args.json:
             print(f"  and {spin_poses.means_mps2.shape[0]} spin poses from {d / 'spin'}")
             for why in spin_poses.skipped:
                 print(f"  skipped spin {why}")
+        # the offsets walked from the static session to the spin one (times on one clock)
+        static_t = [read[p].t_s for p in paths if p not in spin_files]
+        spin_t = [read[p].t_s for p in spin_files]
+        drift = offset_drift_var(
+            cfg.bias_rw_mps2_rts,
+            (min(t[0] for t in static_t), max(t[-1] for t in static_t)),
+            (min(t[0] for t in spin_t), max(t[-1] for t in spin_t)),
+        )
         used = [lab.split(" ")[0] for lab in spin_poses.labels]
         spin = fit_spin_poses(
             spin_poses.means_mps2,
@@ -110,6 +115,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             cfg.layout,
             cfg.position_error_b_m,
             cal,
+            drift,
         )
     out = Path(args.out) if args.out else d / "calibration.toml"
     n_spin = 0 if spin_poses is None else spin_poses.means_mps2.shape[0]
