@@ -257,10 +257,11 @@ class NominalMixin:
         p[POS, POS] = np.diag(np.broadcast_to(np.asarray(pos_sigma_m, dtype=float), 3) ** 2)
         p[VEL, VEL] = np.eye(3) * float(vel_sigma_mps) ** 2
         self.P = p
+        if self.lag is not None:
+            self.lag.forget(slice(0, 6))
         self._consec_rejects = 0
         self._consec_vel_rejects = 0
         self.t_last_position_fix = self.t_s
-        self.counters.discontinuities += 1
         self.check_covariance("GPS reset")
 
     def set_heading(self, yaw_rad: float, sigma_rad: float) -> None:
@@ -273,8 +274,9 @@ class NominalMixin:
         p[:, 8] = 0.0
         p[8, 8] = sigma_rad**2
         self.P = p
+        if self.lag is not None:
+            self.lag.forget([8])
         self._consec_slip_rejects = 0
-        self.counters.discontinuities += 1
         self.check_covariance("heading alignment")
 
     def reopen_attitude(self, tilt_sigma_rad: float, rate_sigma_rps: float) -> None:
@@ -297,5 +299,4 @@ class NominalMixin:
         self.P = p
         self._consec_vel_rejects = 0
         self.counters.attitude_reopens += 1
-        self.counters.discontinuities += 1
         self.check_covariance("attitude reopened")

@@ -21,11 +21,14 @@ With independent noise and no resets this is the textbook RTS pass (filterpy's
 ``rts_smoother``; tests/test_smoother.py checks both that and an exact batch solution
 with correlated noise). ``[+]`` and ``[-]`` are the filter's own error injection:
 additive for every block but the attitude, the NED (left) rotation
-``q = exp(dtheta) q``. A covariance edit that is not a measurement (a position put on
-a fix, a heading set, an attitude reopened;
-:attr:`filters.supervision.Counters.discontinuities`) breaks the chain: the epochs
-before it keep what the fixes up to it tell them, as if the run had ended there
-(counted). So does a posterior that is not positive definite.
+``q = exp(dtheta) q``, and the velocity where the filter takes its error in the body frame.
+
+The filter's fallbacks are followed exactly too. A position and velocity put on a fix,
+or a heading set, forget their old correlations: their new errors owe nothing to the
+start's (:meth:`LagOne.forget`), so the pass carries on across them through the other
+states (a coast's end is smoothed from both sides). An attitude reopened adds variance,
+as process noise does. A posterior that is not positive definite restarts the pass
+there (counted).
 
 What a block stores (two n x n triangles, the n x n cross-covariance and the nominal
 state, 41 kB at n = 50) goes to an unnamed temporary file as the filter runs, so a
@@ -51,7 +54,7 @@ from ngnav.rotation import (
 )
 
 #: Counter name of the smoother's restarts, in the run's counts.
-RESTARTS = "smoother restarts at a reset"
+RESTARTS = "smoother restarts (posterior not positive definite)"
 
 
 class LagOne:
@@ -98,6 +101,13 @@ class LagOne:
         self.p_start -= kc @ s @ kc.T
         self.cross -= kc @ (s @ k.T)
 
+    def forget(self, idx: slice | list[int]) -> None:
+        """States the filter has just put on a fix or a configured value, with their old
+        correlations dropped (a reset, not a measurement): the start tells nothing about
+        their new errors."""
+        if self.cross is not None:
+            self.cross[:, idx] = 0.0
+
     def reset(
         self, ga: np.ndarray, gvv: np.ndarray | None = None, gvt: np.ndarray | None = None
     ) -> None:
@@ -134,8 +144,8 @@ class SmootherLog:
         self._iu = np.triu_indices(n)
         self._m = n + n_extra  # nominal values
         ntri = self._iu[0].size
-        # posterior rows: t, nominal, discontinuities, body-frame velocity error, P triangle
-        self._post_len = 3 + self._m + ntri
+        # posterior rows: t, nominal, body-frame velocity error, P triangle
+        self._post_len = 2 + self._m + ntri
         # lag rows: d_start, P_start triangle, cross
         self._lag_len = n + ntri + n * n
         self._post = tempfile.TemporaryFile()
@@ -159,7 +169,7 @@ class SmootherLog:
             self.n_lags += 1
             lag.cross = None
         body = float(nf.in_body_frame()) if hasattr(nf, "in_body_frame") else 0.0
-        head = np.concatenate([[nf.t_s], self.nominal(nf), [nf.counters.discontinuities, body]])
+        head = np.concatenate([[nf.t_s], self.nominal(nf), [body]])
         self._post.write(head.tobytes())
         self._post.write(nf.P[self._iu].tobytes())
         self.n_posteriors += 1
@@ -189,7 +199,7 @@ class SmootherLog:
             One per posterior (time order): ``(t_s, pos, vel, q, w, bias, cov_nav)``,
             the smoothed nominal and its 12 x 12 navigation covariance.
         restarts : int
-            Blocks whose chain a reset (or a posterior not positive definite) broke.
+            Blocks whose chain a posterior not positive definite broke.
         """
         if self.n_posteriors != self.n_lags + 1:
             raise ValueError(f"smoother: {self.n_posteriors} posteriors for {self.n_lags} blocks")
@@ -200,33 +210,31 @@ class SmootherLog:
         nb = layout.bias.stop - layout.bias.start
         rows: list[tuple] = [None] * self.n_posteriors
         nxt = post[-1]
-        x_next, p_next = np.array(nxt[1 : 1 + m]), self._full(nxt[3 + m :])
+        x_next, p_next = np.array(nxt[1 : 1 + m]), self._full(nxt[2 + m :])
         xs, ps = x_next, p_next
         rows[-1] = _row(nxt[0], xs, ps, nb)
         restarts = 0
         for j in range(self.n_lags - 1, -1, -1):
             a = post[j]
             xa = np.array(a[1 : 1 + m])
-            broken = nxt[1 + m] != a[1 + m]
-            if not broken:
-                b = lags[j]
-                try:
-                    # C^T = P_{j+1}^-1 X^T
-                    ct = cho_solve(cho_factor(p_next), b[n + ntri :].reshape(n, n).T)
-                except (LinAlgError, ValueError):
-                    broken = True
-            if broken:
+            b = lags[j]
+            try:
+                # C^T = P_{j+1}^-1 X^T
+                ct = cho_solve(cho_factor(p_next), b[n + ntri :].reshape(n, n).T)
+            except (LinAlgError, ValueError):
+                ct = None
+            if ct is None:
                 restarts += 1
-                xs, ps = xa, self._full(a[3 + m :])
+                xs, ps = xa, self._full(a[2 + m :])
             else:
                 c = ct.T
-                e_next = boxminus(xs, x_next, bool(nxt[2 + m]))
-                xs = boxplus(xa, b[0:n] + c @ e_next, bool(a[2 + m]))
+                e_next = boxminus(xs, x_next, bool(nxt[1 + m]))
+                xs = boxplus(xa, b[0:n] + c @ e_next, bool(a[1 + m]))
                 ps = self._full(b[n : n + ntri]) + c @ (ps - p_next) @ ct
                 ps = 0.5 * (ps + ps.T)
             rows[j] = _row(a[0], xs, ps, nb)
             nxt = a
-            x_next, p_next = xa, self._full(a[3 + m :])
+            x_next, p_next = xa, self._full(a[2 + m :])
         del post, lags, nxt, a
         self.close()
         return rows, restarts

@@ -86,9 +86,6 @@ class Counters:
     handover_model_updates: int = 0
     zero_rate_used: int = 0
     zero_rate_rejected: int = 0
-    #: Covariance edits that are not measurements (a reset onto a fix, a heading set,
-    #: an attitude reopened): where a smoother's backward pass must restart.
-    discontinuities: int = 0
 
 
 class SupervisionMixin:

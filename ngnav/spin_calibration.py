@@ -102,7 +102,10 @@ def read_spin_pose(csv_path) -> np.ndarray:
         raise ValueError(f"{p}: no {meta.name} beside it (axis_b, rate_dps)") from None
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{meta}: not valid TOML: {exc}") from None
-    axis = np.asarray(data.get("axis_b", []), dtype=float)
+    try:
+        axis = np.asarray(data.get("axis_b", []), dtype=float)
+    except (TypeError, ValueError):
+        axis = np.zeros(0)
     if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
         raise ValueError(f"{meta}: axis_b must be 3 finite numbers, not all zero")
     rate = data.get("rate_dps")
@@ -111,7 +114,10 @@ def read_spin_pose(csv_path) -> np.ndarray:
         if m is None:
             raise ValueError(f"{meta}: missing rate_dps (or a file name ending _<rate>dps)")
         rate = float(m.group(1))
-    rate = float(rate)
+    try:
+        rate = float(rate)
+    except (TypeError, ValueError):
+        rate = float("nan")
     if not np.isfinite(rate) or rate == 0:
         raise ValueError(f"{meta}: rate_dps must be a non-zero number, got {rate}")
     return np.deg2rad(rate) * axis / np.linalg.norm(axis)
@@ -181,8 +187,8 @@ def fit_spin_poses(
     if dof <= 0:
         raise ValueError(
             f"{k} spin poses give {k * n} readings for {n_p + 2 * k + 3} position, axis and "
-            f"offset-from-the-axis parameters: at least {int(np.ceil(n_p / (n - 4))) + 1} "
-            "poses are needed"
+            f"offset-from-the-axis parameters: at least {(n_p + 3) // (n - 2) + 1} poses are "
+            "needed"
         )
     s0 = np.concatenate(
         [static.offset_mps2, static.scale, np.linalg.lstsq(q, static.axis_error_rad.ravel())[0]]

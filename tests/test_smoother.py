@@ -20,6 +20,7 @@ from filters.updates import Measurement, update_correlated
 from ngnav.rotation import quat_from_rotvec
 
 LAYOUT = StateLayout(3, 0, 0)  # 12 navigation states and 9 biases
+R_FIX = 0.09 * np.eye(6)  # a reset's fix: position and velocity variance
 
 
 class LinearFilter(SimpleNamespace):
@@ -34,7 +35,6 @@ class LinearFilter(SimpleNamespace):
 def _fake(n: int) -> LinearFilter:
     nf = LinearFilter(
         layout=LAYOUT,
-        counters=SimpleNamespace(discontinuities=0),
         dr=np.zeros(0),
         aoa_b=0.0,
         aoa_k=0.0,
@@ -93,13 +93,23 @@ def _linear_run(steps: int, break_at: int | None = None, correlated: bool = Fals
         log.lag.update(meas, p)
         x, p = update_correlated(x, p, z, r, h, meas.cross)
         if k == break_at:
-            p = p + np.eye(n)  # a reset: not a measurement
-            nf.counters.discontinuities += 1
+            # position and velocity put on a fix, their correlations dropped (the filter's
+            # reset_to_fix): not a measurement
+            reset = (x.copy(), p.copy(), truth[:6] + 0.3 * rng.standard_normal(6))
+            p = p.copy()
+            p[:6, :] = 0.0
+            p[:, :6] = 0.0
+            p[:6, :6] = R_FIX
+            x = x.copy()
+            x[:6] = reset[2]
+            nf.lag.forget(slice(0, 6))
         xs.append(x.copy())
         ps.append(p.copy())
     nf.P = p
     nf.set_mean(x)
     log.posterior(nf)
+    if break_at is not None:
+        return log, np.array(xs), np.array(ps), (f, q), reset
     return log, np.array(xs), np.array(ps), (f, q, h, r, m, np.array(zs))
 
 
@@ -148,7 +158,7 @@ def test_equals_filterpy_rts_smoother_on_a_linear_run():
     rows, restarts = log.smooth(LAYOUT)
     log.close()
     assert restarts == 0 and len(rows) == steps + 1
-    # filterpy's smoother over the same posteriors (its Fs[k + 1] moves epoch k to k + 1)
+    # filterpy's smoother over the same posteriors (its Fs[k] moves epoch k to k + 1)
     x_ref, p_ref, _, _ = rts_smoother(
         xs, ps, np.array([f] * (steps + 1)), np.array([q] * (steps + 1))
     )
@@ -175,16 +185,32 @@ def test_equals_the_batch_solution_with_correlated_noise():
     assert np.max(np.abs(x_ref - means)) > 1e-3
 
 
-def test_a_reset_restarts_the_backward_pass():
-    log, xs, ps, (f, q, *_) = _linear_run(20, break_at=9)
+def test_a_reset_is_smoothed_across_as_a_jump_then_a_fix():
+    """A reset onto a fix is the limit of a jump (huge process noise on position and
+    velocity) followed by a measurement of them: filterpy's smoother over that sequence,
+    the jump an extra epoch, is the reference."""
+    k = 9
+    log, xs, ps, (f, q), (x_pre, p_pre, _) = _linear_run(20, break_at=k)
     rows, restarts = log.smooth(LAYOUT)
-    assert restarts == 1
-    # the reset sits between the posteriors of epochs 9 and 10: epoch 9 is the filter's own
-    np.testing.assert_allclose(_as_state(rows[9]), xs[9], atol=1e-12)
-    np.testing.assert_allclose(rows[9][6], ps[9][:12, :12], atol=1e-12)
-    # before it the smoother works on the first segment alone
-    x_ref, _, _, _ = rts_smoother(xs[:10], ps[:10], np.array([f] * 10), np.array([q] * 10))
-    np.testing.assert_allclose(_as_state(rows[3]), x_ref[3], atol=1e-9)
+    assert restarts == 0
+    n = xs.shape[1]
+    jump = np.zeros((n, n))
+    jump[:6, :6] = 1e6 * np.eye(6)  # huge beside the states, still well conditioned
+    ref_x = np.concatenate([xs[: k + 1], x_pre[None], xs[k + 1 :]])
+    ref_p = np.concatenate([ps[: k + 1], p_pre[None], ps[k + 1 :]])
+    fs = np.array([f] * ref_x.shape[0])
+    qs = np.array([q] * ref_x.shape[0])
+    fs[k + 1], qs[k + 1] = np.eye(n), jump  # filterpy: Fs[i] moves epoch i to i + 1
+    x_ref, p_ref, _, _ = rts_smoother(ref_x, ref_p, fs, qs)
+    keep = np.r_[0 : k + 1, k + 2 : ref_x.shape[0]]  # all but the epoch before the jump
+    np.testing.assert_allclose(np.array([_as_state(r) for r in rows]), x_ref[keep], atol=1e-6)
+    np.testing.assert_allclose(np.array([r[6] for r in rows]), p_ref[keep, :12, :12], atol=1e-6)
+    # the epochs before the reset learn from the ones after it (through the other states)
+    assert np.trace(rows[k][6]) < np.trace(
+        rts_smoother(xs[: k + 1], ps[: k + 1], np.array([f] * (k + 1)), np.array([q] * (k + 1)))[1][
+            k
+        ][:12, :12]
+    )
 
 
 @pytest.mark.parametrize("body", [False, True])
@@ -256,6 +282,6 @@ def test_consistency_judges_the_smoothed_estimates():
     )
     assert got.returncode == 0, got.stderr
     sm = json.loads(got.stdout)["smoothed"]
-    # fixed seeds: the smoother beats the filter on both runs, with no reset to restart at
+    # fixed seeds: the smoother beats the filter on both runs; no posterior failed
     assert 0 < sm["att_rms_ratio_max"] < 1 and 0 < sm["rate_rms_ratio_max"] < 1
     assert sm["restarts"] == 0

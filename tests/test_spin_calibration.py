@@ -84,6 +84,8 @@ def test_the_spin_pose_reads_its_axis_and_rate(tmp_path):
         ("rate_dps = 90\n", "axis_b must be 3 finite numbers"),
         ("axis_b = [0, 0, 0]\nrate_dps = 90\n", "axis_b must be 3 finite numbers"),
         ("axis_b = [0, 0, 1]\nrate_dps = 0\n", "rate_dps must be a non-zero number"),
+        ('axis_b = "up"\nrate_dps = 90\n', "axis_b must be 3 finite numbers"),
+        ('axis_b = [0, 0, 1]\nrate_dps = "fast"\n', "rate_dps must be a non-zero number"),
     ):
         (tmp_path / "yaw_360dps.toml").write_text(text)
         with pytest.raises(ValueError, match=why):

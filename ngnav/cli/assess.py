@@ -96,7 +96,7 @@ def print_run_summary(out: dict) -> None:
             f"  smoothed RMS over the filter's, median (worst) over runs: attitude "
             f"{sm['att_rms_ratio_median']:.3f} ({sm['att_rms_ratio_max']:.3f}), rate "
             f"{sm['rate_rms_ratio_median']:.3f} ({sm['rate_rms_ratio_max']:.3f}); "
-            f"{sm['restarts']} restarts at resets"
+            f"{sm['restarts']} restarts (a posterior not positive definite)"
         )
     for d in out["diverged"]:
         what = "" if d["reason"].startswith("failed:") else "diverged: "
