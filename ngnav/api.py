@@ -21,12 +21,14 @@ covariance of position, velocity, attitude (a NED small angle, rad) and body rat
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from filters.evaluate import ErrorSummary, RunErrors, nees, run_errors, summarise
 from filters.output import read_estimates_csv as _read_csv
 from filters.output import read_estimates_npz as _read_npz
 from filters.pipeline import Pipeline, run_filter
+from ngnav.bench_session import BenchCalibration, calibrate_bench
 from ngnav.errors import CovarianceError, LostTrackError
 from ngnav.records import ArraySamples, Estimates, FlightTruth, GpsFixes, NavEstimate, RunResult
 from ngnav.runconfig import RunConfig
@@ -38,6 +40,7 @@ from telemetry.runfiles import write_run as _write_run
 
 __all__ = [
     "ArraySamples",
+    "BenchCalibration",
     "CovarianceError",
     "ErrorSummary",
     "Estimates",
@@ -47,11 +50,15 @@ __all__ = [
     "NavEstimate",
     "RunConfig",
     "RunErrors",
+    "RunReport",
     "RunResult",
     "SimulatedRun",
+    "calibrate",
+    "consistency",
     "errors",
     "nees",
     "pipeline_factory",
+    "plot",
     "read_estimates",
     "read_run",
     "run",
@@ -202,3 +209,133 @@ def pipeline_factory(
         )
 
     return make
+
+
+def calibrate(directory: str | Path) -> BenchCalibration:
+    """Calibrate an array from a bench session's directory (as ``ngnav calibrate``).
+
+    The directory holds ``config.toml`` (``[array]``, ``[sensor]``), the static poses
+    (``static/*.csv`` or one ``array.csv``) and, optionally, rate-table poses
+    (``spin/*.csv`` with a ``.toml`` each). The result's ``static`` and ``spin`` hold the
+    fits with their 1-sigmas; ``section`` is the ``[calibration]`` text a run's
+    ``config.toml`` takes (write it where you want it). See :mod:`ngnav.bench_session`.
+    """
+    return calibrate_bench(directory)
+
+
+@dataclass(frozen=True)
+class RunReport:
+    """What :func:`plot` drew: the PNG ``figures``, the HTML ``report`` and its ``summary``
+    lines."""
+
+    figures: list[Path]
+    report: Path
+    summary: list[str]
+
+
+def plot(
+    run: str | Path, out: str | Path | None = None, estimates: str | Path | None = None
+) -> RunReport:
+    """Draw a run's figures and its self-contained HTML report (as ``ngnav plot``).
+
+    ``run`` is a run directory after ``ngnav run`` (``config.toml``, ``gps.csv``,
+    ``estimates.csv``, and ``truth.csv`` for the errors); ``estimates`` another estimates
+    file (e.g. ``estimates.smoothed.csv``); ``out`` the folder (default ``RUN/plots``).
+    """
+    import numpy as np
+    from scipy.stats import chi2
+
+    from filters.evaluate import run_errors, summarise
+    from filters.output import nis_path, read_estimates_csv, read_nis_csv
+    from filters.supervision import GATE_PROBABILITY
+    from filters.vehicle_model import COAST_AFTER_FIXES, COAST_AFTER_S
+    from ngnav.geodesy import LocalTangentPlane
+    from ngnav.plots import RunPlotData, outage_spans, plot_run, write_report
+    from ngnav.runconfig import read_run_config
+    from ngnav.runio import read_gps_csv, read_truth_csv
+
+    src = Path(run)
+    if not src.is_dir():
+        raise ValueError(f"{src}: not a run directory (config.toml, gps.csv, estimates.csv)")
+    est_path = Path(estimates) if estimates else src / "estimates.csv"
+    if not est_path.is_file():
+        raise ValueError(f"{est_path}: no such file; run `ngnav run {src}` first")
+    cfg = read_run_config(src / "config.toml")
+    fixes, _ = read_gps_csv(src / "gps.csv")
+    est = read_estimates_csv(est_path)
+    ltp = LocalTangentPlane(cfg.lat0_deg, cfg.lon0_deg, cfg.alt0_m)
+    fix_ned = ltp.to_ned(fixes.lat_deg, fixes.lon_deg, fixes.alt_m)
+    nis = read_nis_csv(nis_path(est_path)) if nis_path(est_path).is_file() else None
+    summary = [
+        f"run {src}: {est.t_s.size} estimates over {est.t_s[0]:.2f}-{est.t_s[-1]:.2f} s "
+        f"({est_path.name}), {fixes.t_s.size} GPS fixes"
+    ]
+    if nis is not None:
+        summary.append(
+            f"GPS positions rejected by the gate: {int((~nis.pos_accepted).sum())}, "
+            f"velocities: {int((~nis.vel_accepted).sum())} (of {nis.t_s.size})"
+        )
+    err_stacked = None
+    truth_csv = src / "truth.csv"
+    if truth_csv.is_file():
+        err = run_errors(est, read_truth_csv(truth_csv))
+        err_stacked = err.stacked()
+        s = summarise(err)
+        summary.append(
+            f"against truth.csv: horizontal RMS {s.horiz_rms_m:.3f} m, vertical "
+            f"{s.vert_rms_m:.3f} m, roll/pitch/yaw RMS {s.roll_rms_deg:.3f}/"
+            f"{s.pitch_rms_deg:.3f}/{s.yaw_rms_deg:.3f} deg, rate {s.rate_rms_dps:.3f} deg/s"
+        )
+    # an outage as the filter counts one: no fix for 1 s, or 5 fix intervals if longer
+    interval = float(np.median(np.diff(fixes.t_s))) if fixes.t_s.size > 1 else 1.0
+    outages = outage_spans(fixes.t_s, max(COAST_AFTER_S, COAST_AFTER_FIXES * interval))
+    if outages:
+        spans = ", ".join(f"{a:.1f}-{b:.1f} s" for a, b in outages)
+        summary.append(f"GPS outages (shaded): {spans}")
+    data = RunPlotData(
+        est,
+        fixes.t_s,
+        fix_ned,
+        nis=nis,
+        nis_gate=float(chi2.ppf(GATE_PROBABILITY, 3)),
+        outages=outages,
+        errors=err_stacked,
+    )
+    out_dir = Path(out) if out else src / "plots"
+    files = plot_run(data, out_dir)
+    report = write_report(out_dir, files, f"ngnav: {src.name}", summary)
+    return RunReport(files, report, summary)
+
+
+def consistency(
+    scenario: str = "tactical",
+    runs: int = 50,
+    *,
+    overrides: Sequence[str] = (),
+    method: str | None = None,
+    workers: int = 2,
+    scheduler: str | None = None,
+    smooth: bool = False,
+    profile_s: float | None = None,
+    from_s: float | None = None,
+) -> dict:
+    """NEES and NIS over Monte Carlo runs of a scenario (as ``ngnav consistency``).
+
+    Runs ``0 .. runs - 1`` on dask.distributed: ``workers`` local processes, or the
+    cluster at ``scheduler`` (``tcp://HOST:8786``). ``smooth`` judges the smoothed
+    estimates. Returns the report (``blocks``: each NEES block's and NIS's share inside
+    the 95 % band, mean and bounds; ``target``; ``diverged``; with ``smooth`` the RMS
+    ratios under ``smoothed``). See :func:`filters.consistency.consistency`.
+    """
+    from filters.consistency import consistency as _consistency
+
+    return _consistency(
+        load_flight(scenario, list(overrides)),
+        runs,
+        method,
+        workers,
+        profile_s=profile_s,
+        from_s=from_s,
+        scheduler=scheduler,
+        smooth=smooth,
+    )

@@ -159,3 +159,13 @@ def test_ngnav_run_writes_the_binary_estimates(plotted):
     csv_est, _ = api.read_estimates(run / "estimates.csv")
     np.testing.assert_allclose(est.pos_ned_m, csv_est.pos_ned_m, rtol=1e-5, atol=1e-5)
     assert fin.cov.shape[0] == sum(d for _, d in fin.state_blocks) > 12
+
+
+def test_the_python_api_draws_the_same_report(plotted, tmp_path):
+    from ngnav import api
+
+    run, _ = plotted
+    got = api.plot(run, out=tmp_path / "figures")
+    assert sorted(p.stem for p in got.figures) == sorted(RUN_FIGURES)
+    assert got.report == tmp_path / "figures" / "report.html" and got.report.is_file()
+    assert any(line.startswith("against truth.csv") for line in got.summary)

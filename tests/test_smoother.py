@@ -285,3 +285,11 @@ def test_consistency_judges_the_smoothed_estimates():
     # fixed seeds: the smoother beats the filter on both runs; no posterior failed
     assert 0 < sm["att_rms_ratio_max"] < 1 and 0 < sm["rate_rms_ratio_max"] < 1
     assert sm["restarts"] == 0
+
+
+def test_the_python_api_runs_a_smoothed_campaign():
+    from ngnav import api
+
+    out = api.consistency("tactical", 2, overrides=["run.rate_hz=200"], workers=1, smooth=True)
+    assert out["runs"] == 2 and not out["diverged"]
+    assert 0 < out["smoothed"]["att_rms_ratio_max"] < 1

@@ -116,3 +116,13 @@ def test_calibrate_cli_writes_the_spun_positions(tmp_path):
     (d / "spin" / "spin_03.toml").unlink()
     proc = run_cli("calibrate", str(d), check=False)
     assert proc.returncode == 2 and "spin_03.csv: no spin_03.toml beside it" in proc.stderr
+
+
+def test_the_python_api_calibrates_as_the_cli_does(tmp_path):
+    from ngnav import api
+
+    d = write_bench_session(bench_session(SCN, 1), tmp_path / "bench")
+    run_cli("calibrate", str(d))
+    got = api.calibrate(d)
+    assert got.section == (d / "calibration.toml").read_text()
+    assert got.spin is not None and got.spin_poses.means_mps2.shape[0] == SPIN_AXES.shape[0]
