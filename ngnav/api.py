@@ -63,6 +63,7 @@ __all__ = [
     "read_run",
     "run",
     "simulate",
+    "simulate_bench",
     "summary",
     "write_run",
 ]
@@ -136,6 +137,31 @@ def run(
     return run_filter(
         samples, fixes, config, compensation=compensation, use_gps=use_gps, smooth=smooth
     )
+
+
+def simulate_bench(
+    scenario: str = "uav-survey",
+    run_index: int = 0,
+    out: str | Path | None = None,
+    *,
+    continuous: bool = False,
+    overrides: Sequence[str] = (),
+):
+    """Simulate the bench session of a flight run's array, for :func:`calibrate`.
+
+    18 still poses (one recording each, or one recording with turns between them with
+    ``continuous``) and 9 rate-table poses of run ``run_index``'s array, with its truth.
+    With ``out`` the session is written there as ``ngnav calibrate`` reads it (and
+    ``truth_calibration.toml``). Returns a :class:`ngnav.sim.bench_recordings.BenchSession`.
+    """
+    from ngnav.sim.bench_recordings import bench_session, write_bench_session
+
+    session = bench_session(
+        load_flight(scenario, list(overrides)), run_index, continuous=continuous
+    )
+    if out is not None:
+        write_bench_session(session, out)
+    return session
 
 
 def read_run(path: str | Path) -> RunInputs:

@@ -121,7 +121,9 @@ def test_calibrate_cli_writes_the_spun_positions(tmp_path):
 def test_the_python_api_calibrates_as_the_cli_does(tmp_path):
     from ngnav import api
 
-    d = write_bench_session(bench_session(SCN, 1), tmp_path / "bench")
+    d = tmp_path / "bench"
+    session = api.simulate_bench("uav-survey", 1, d)
+    assert len(session.spins) == SPIN_AXES.shape[0]
     run_cli("calibrate", str(d))
     got = api.calibrate(d)
     assert got.section == (d / "calibration.toml").read_text()
