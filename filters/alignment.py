@@ -253,9 +253,10 @@ class AlignmentMixin:
         # the forecast's error (see _forecast_noise): its noise floor, the block means'
         # own noise plus what the forecast carries of the history's
         comp = cfg.compensation
-        persistence = FORECAST_ERROR_PERSISTENCE[bool(comp.forecast_correction)]
-        self._fe_persistence = persistence if se is not None else 0.0
         self._fe_correct = bool(comp.forecast_correction) and se is not None
+        # the error left in the state is counted as noise only without the correction
+        use_noise = se is not None and not self._fe_correct
+        self._fe_persistence = FORECAST_ERROR_PERSISTENCE if use_noise else 0.0
         self._fe_d2 = np.zeros(6)
         #: The noise in :attr:`last_forecast_error` of a block of one sample, (6,):
         #: ``(1 + g) N`` with ``N`` the raw feature noise variance per sample and ``g``

@@ -63,9 +63,8 @@ class CompensationSettings:
         or ``oracle`` (the true geometry; simulations only).
     forecast_correction : bool
         Take the forecast's measured error out of the nominal state after each block
-        (default false). What it leaves of that error is counted in the rate and
-        velocity noise as one block's worth with the correction, two without
-        (``filters.forecast.FORECAST_ERROR_PERSISTENCE``).
+        (default false). Without it the error is counted in the rate and velocity noise
+        instead, as two blocks' worth (``filters.forecast.FORECAST_ERROR_PERSISTENCE``).
     """
 
     method: str = "gm11"

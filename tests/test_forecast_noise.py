@@ -139,7 +139,7 @@ def test_the_first_forecasts_errors_are_noise(scenario, sets, t_end_s):
 def test_forecast_noise_grows_the_rate_covariance_in_a_roll_out_not_in_a_dive(monkeypatch):
     """tactical's roll-out of the climbing turn (47 s) against its steady dive (33 s), the
     uncorrected forecast's error counted twice (its persistence) against not at all."""
-    import filters.forecast
+    import filters.alignment
 
     scn = load_flight("tactical", ["run.rate_hz=200"])
     sim = simulate_flight(scn, 0)
@@ -156,7 +156,7 @@ def test_forecast_noise_grows_the_rate_covariance_in_a_roll_out_not_in_a_dive(mo
                     seen[tk] = float(np.trace(p.nf.P[RATE, RATE]))
 
         with monkeypatch.context() as mp:
-            mp.setitem(filters.forecast.FORECAST_ERROR_PERSISTENCE, False, persistence)
+            mp.setattr(filters.alignment, "FORECAST_ERROR_PERSISTENCE", persistence)
             pipe = Pipeline(cfg)
             pipe.on_epoch = lambda _est, pipe=pipe, grab=grab: grab(pipe)
             _feed(pipe, sim.samples, sim.fixes, None)
@@ -168,11 +168,12 @@ def test_forecast_noise_grows_the_rate_covariance_in_a_roll_out_not_in_a_dive(mo
 
 
 def test_the_forecast_errors_persistence_follows_its_correction():
-    """The filter counts the forecast's error once with the correction, twice without."""
+    """The filter counts the forecast's error as noise twice without the correction, and
+    not at all with it (the correction takes it out of the state)."""
     short = "flight.legs=[{ duration_s = 3.0, ramp_s = 1.0, bank_deg = 30.0 }]"
     scn = load_flight("tactical", ["run.rate_hz=200", short])
     sim = simulate_flight(scn, 0)
-    for corrected, want in ((True, 1.0), (False, 2.0)):
+    for corrected, want in ((True, 0.0), (False, 2.0)):
         comp = replace(sim.config.compensation, forecast_correction=corrected)
         pipe = Pipeline(replace(sim.config, compensation=comp))
         _feed(pipe, sim.samples, sim.fixes, None)
