@@ -133,16 +133,14 @@ class SmootherLog:
     Parameters
     ----------
     n : int
-        Size of the error state.
-    n_extra : int
-        Nominal values beyond the error state's size (1: the quaternion's fourth).
+        Size of the error state (the nominal state has one value more: the quaternion).
     """
 
-    def __init__(self, n: int, n_extra: int = 1) -> None:
+    def __init__(self, n: int) -> None:
         self.n = n
         self.lag = LagOne()
         self._iu = np.triu_indices(n)
-        self._m = n + n_extra  # nominal values
+        self._m = n + 1  # nominal values
         ntri = self._iu[0].size
         # posterior rows: t, nominal, body-frame velocity error, P triangle
         self._post_len = 2 + self._m + ntri
@@ -168,8 +166,7 @@ class SmootherLog:
             self._lags.write(lag.cross.tobytes())
             self.n_lags += 1
             lag.cross = None
-        body = float(nf.in_body_frame()) if hasattr(nf, "in_body_frame") else 0.0
-        head = np.concatenate([[nf.t_s], self.nominal(nf), [body]])
+        head = np.concatenate([[nf.t_s], self.nominal(nf), [float(nf.in_body_frame())]])
         self._post.write(head.tobytes())
         self._post.write(nf.P[self._iu].tobytes())
         self.n_posteriors += 1

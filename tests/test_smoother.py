@@ -40,6 +40,7 @@ def _fake(n: int) -> LinearFilter:
         aoa_k=0.0,
         t_s=0.0,
         P=np.eye(n),
+        in_body_frame=lambda: False,
     )
     nf.set_mean(np.zeros(n))
     return nf
