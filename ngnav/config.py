@@ -127,6 +127,18 @@ def shipped_scenarios() -> list[str]:
     return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".toml"))
 
 
+def read_toml_file(path: str | Path, missing: str) -> dict:
+    """Parsed TOML of a file; ValueError ``missing`` if it does not exist, or one line
+    naming the file if it is not valid TOML."""
+    p = Path(path)
+    try:
+        return tomllib.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ValueError(missing) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{p}: not valid TOML: {exc}") from None
+
+
 def read_scenario_data(name_or_path: str) -> tuple[dict, str]:
     """Parsed TOML of a shipped scenario name or a file path, and its source label."""
     path = Path(name_or_path)

@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from ngnav.config import read_toml_file
 from ngnav.layout import ArrayLayout
 from ngnav.mounting import MountingErrors
 from ngnav.settings import (
@@ -337,12 +338,7 @@ class ArrayConfig:
 def read_array_config(path: str | Path) -> ArrayConfig:
     """Read the array and sensor sections of a ``config.toml`` (no other section needed)."""
     p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ValueError(f"{p}: no such file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{p}: not valid TOML: {exc}") from None
+    data = read_toml_file(p, f"{p}: no such file")
     for section in ("array", "sensor"):
         if not isinstance(data.get(section), dict):
             raise ValueError(f"{p}: missing section [{section}]")

@@ -91,17 +91,13 @@ def read_spin_pose(csv_path) -> np.ndarray:
     ``rate_dps`` the rate is read from a file name ending ``_<rate>dps``.
     """
     import re
-    import tomllib
     from pathlib import Path
+
+    from ngnav.config import read_toml_file
 
     p = Path(csv_path)
     meta = p.with_suffix(".toml")
-    try:
-        data = tomllib.loads(meta.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ValueError(f"{p}: no {meta.name} beside it (axis_b, rate_dps)") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{meta}: not valid TOML: {exc}") from None
+    data = read_toml_file(meta, f"{p}: no {meta.name} beside it (axis_b, rate_dps)")
     try:
         axis = np.asarray(data.get("axis_b", []), dtype=float)
     except (TypeError, ValueError):
