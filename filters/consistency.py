@@ -450,8 +450,10 @@ def consistency(
     scheduler: str | None = None,
     save_dir: str | Path | None = None,
     smooth: bool = False,
+    first: int = 0,
 ) -> dict:
-    """NEES/NIS over ``runs`` Monte Carlo runs; share of epochs inside the 95 % bounds.
+    """NEES/NIS over ``runs`` Monte Carlo runs (``first`` to ``first + runs - 1``: another
+    ``first`` is another draw of the same scenario); share of epochs inside the 95 % bounds.
 
     Runs execute as a campaign on dask.distributed (:func:`monte_carlo_runs`: ``workers``
     local processes, 1 in this process, or the cluster at ``scheduler``). Glitched fixes
@@ -469,7 +471,7 @@ def consistency(
     the median and worst ratios of their attitude and rate RMS to the filter's.
     """
     return consistency_series(
-        scn, runs, method, workers, progress, profile_s, from_s, scheduler, save_dir, smooth
+        scn, runs, method, workers, progress, profile_s, from_s, scheduler, save_dir, smooth, first
     )[0]
 
 
@@ -484,6 +486,7 @@ def consistency_series(
     scheduler: str | None = None,
     save_dir: str | Path | None = None,
     smooth: bool = False,
+    first: int = 0,
 ) -> tuple[dict, np.ndarray, dict[str, np.ndarray]]:
     """:func:`consistency`'s report, the epochs' times (E,) and each NEES block's
     per-epoch average over the runs (E,): what ``ngnav consistency --plot`` draws.
@@ -496,10 +499,12 @@ def consistency_series(
     method = method or scn.compensation.method
     if runs < 1:
         raise ValueError(f"runs must be at least 1, got {runs}")
+    if first < 0:
+        raise ValueError(f"the first run's index must be at least 0, got {first}")
     acc = RunningSummary(from_s, save_dir)
     failures = run_campaign(
         partial(one_run, scn, method=method, smooth=smooth),
-        range(runs),
+        range(first, first + runs),
         acc.add,
         workers=workers,
         scheduler=scheduler,
@@ -508,4 +513,5 @@ def consistency_series(
     )
     acc.fail(failures)
     out, averages = acc.summary(scn.name, method, profile_s)
+    out["first_run"] = first
     return out, acc.t_s, averages

@@ -7,10 +7,8 @@ import math
 import numpy as np
 
 from filters.algebra import (
-    _CURVATURE_CROSS,
-    _DTHETA_DV_IX,
-    _E3,
     BODY_FRAME_MAX_CURVATURE_MPS,
+    ned_velocity_curvature,
 )
 from filters.state import ATT, RATE, VEL
 from filters.updates import Measurement
@@ -337,26 +335,12 @@ class ConstraintsMixin:
         return curv <= BODY_FRAME_MAX_CURVATURE_MPS
 
     def velocity_curvature(self) -> tuple[np.ndarray, np.ndarray]:
-        """Mean (3,) and covariance (3, 3) of the NED velocity's second-order part, m/s.
-
-        With :attr:`body_velocity_error` the true NED velocity is ``v + xi_v + c``,
-        ``c = dtheta x xi_v - dtheta x (dtheta x v) / 2``: each component a quadratic
-        form ``x^T M_i x / 2`` over ``x = (dtheta, xi_v)``, so ``E c_i = tr(M_i P) / 2``
-        and ``Cov(c_i, c_j) = tr(M_i P M_j P) / 2``. Zeros with the NED error (the
-        velocity error is then exactly additive).
-        """
+        """Mean (3,) and covariance (3, 3) of the NED velocity's second-order part, m/s
+        (:func:`filters.algebra.ned_velocity_curvature`); zeros with the NED error (the
+        velocity error is then exactly additive)."""
         if not self.in_body_frame():
             return np.zeros(3), np.zeros((3, 3))
-        v = self.vel
-        m = _CURVATURE_CROSS.copy()  # (3, 6, 6): M_i over (dtheta, xi_v)
-        # the attitude block -A(e_i, v) = -(e_i v^T + v e_i^T) / 2 + v_i I
-        m[:, 0:3, 0:3] = -0.5 * (_E3[:, :, None] * v[None, None, :])
-        m[:, 0:3, 0:3] -= 0.5 * (v[None, :, None] * _E3[:, None, :])
-        m[:, 0:3, 0:3] += v[:, None, None] * _E3[None, :, :]
-        mp = m @ self.P[_DTHETA_DV_IX]
-        mean = 0.5 * np.trace(mp, axis1=1, axis2=2)
-        cov = 0.5 * np.einsum("iab,jba->ij", mp, mp)
-        return mean, cov
+        return ned_velocity_curvature(self.vel, self.P)
 
     def _rate_body_velocity_cov(self, c: np.ndarray) -> np.ndarray:
         """``E[dw dv_b^T]`` (3, 3) with ``dv_b = C^T (xi_v + v x dtheta)`` (``c`` = C)."""

@@ -7,6 +7,8 @@ import numpy as np
 from filters.algebra import (
     BODY_INJECTION_MAX_CURVATURE_MPS,
     _axial,
+    apply_reset_jacobian,
+    attitude_reset_jacobian,
     body_velocity_reset_jacobian,
 )
 from filters.state import ATT, POS, RATE, VEL
@@ -197,38 +199,15 @@ class NominalMixin:
             self.aoa_b += float(da[0])
             if self.layout.n_aoa == 2:
                 self.aoa_k += float(da[1])
-        # reset Jacobian of the attitude error (first order): G = I except
-        # G[ATT, ATT] = I + [dtheta]x / 2, the left (NED) error's reset (checked
-        # against exact rotations in tests/test_body_velocity_error.py), with its
-        # heading column held at e_z (observability-constrained, as OC-EKFs hold their
-        # unobservable directions): a turn of the whole solution about the vertical is
-        # the left error's e_z at every epoch, and exactly unobservable at rest. The
-        # exact reset's column, e_z + dtheta x e_z / 2, put a part of a large heading
-        # variance into the tilt's rows at every tilt correction, which the fixes then
-        # read as heading information: at rest (`static`, 16 runs) the heading's sigma
-        # fell from 5.0 to 3.6 deg while its error stayed at 5.8 deg rms (z^2 2.83);
-        # held, 4.9-5.0 deg and 0.92-1.00 (docs/notes/filter-notes.md, "the zero-rate update
-        # at rest")
-        hx, hy, hz = dth.tolist()
-        hx, hy, hz = 0.5 * hx, 0.5 * hy, 0.5 * hz
-        ga = np.array([[1.0, -hz, 0.0], [hz, 1.0, 0.0], [-hy, hx, 1.0]])
-        p = self.P
+        # reset Jacobian (first order): G = I except the attitude rows
+        # (attitude_reset_jacobian) and, body-style, the velocity rows
+        ga = attitude_reset_jacobian(dth)
+        gvv = gvt = None
         if body:
             gvv, gvt = body_velocity_reset_jacobian(dth, dx[VEL], v_old)
-            rows_v = p[VEL, :].copy()
-            rows_t = p[ATT, :].copy()
-            p[VEL, :] = gvv @ rows_v + gvt @ rows_t
-            p[ATT, :] = ga @ rows_t
-            cols_v = p[:, VEL].copy()
-            cols_t = p[:, ATT].copy()
-            p[:, VEL] = cols_v @ gvv.T + cols_t @ gvt.T
-            p[:, ATT] = cols_t @ ga.T
-        else:
-            p[ATT, :] = ga @ p[ATT, :]
-            p[:, ATT] = p[:, ATT] @ ga.T
+        self.P = apply_reset_jacobian(self.P, ga, gvv, gvt)
         if self.lag is not None:
-            self.lag.reset(ga, *((gvv, gvt) if body else ()))
-        self.P = 0.5 * (p + p.T)
+            self.lag.reset(ga, gvv, gvt)
         self.x = np.zeros(self.x.shape[0])
 
     def reset_to_fix(

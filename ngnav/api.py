@@ -344,11 +344,13 @@ def consistency(
     smooth: bool = False,
     profile_s: float | None = None,
     from_s: float | None = None,
+    first: int = 0,
 ) -> dict:
     """NEES and NIS over Monte Carlo runs of a scenario (as ``ngnav consistency``).
 
-    Runs ``0 .. runs - 1`` on dask.distributed: ``workers`` local processes, or the
-    cluster at ``scheduler`` (``tcp://HOST:8786``). ``smooth`` judges the smoothed
+    Runs ``first .. first + runs - 1`` (another ``first``: another draw) on
+    dask.distributed: ``workers`` local processes, or the cluster at ``scheduler``
+    (``tcp://HOST:8786``). ``smooth`` judges the smoothed
     estimates. Returns the report (``blocks``: each NEES block's and NIS's share inside
     the 95 % band, mean and bounds; ``target``; ``diverged``; with ``smooth`` the RMS
     ratios under ``smoothed``). See :func:`filters.consistency.consistency`.
@@ -364,4 +366,5 @@ def consistency(
         from_s=from_s,
         scheduler=scheduler,
         smooth=smooth,
+        first=first,
     )

@@ -258,6 +258,7 @@ def consistency_study(
         scn, runs * sets, method, workers, progress, extras=control_extras, scheduler=scheduler
     )
     out, averages = summarise_runs(scn.name, method, results, diverged, profile_s, from_s)
+    out["first_run"] = 0  # the study splits runs 0 .. runs * sets - 1 into its sets
     n = out["runs"]
     dims = nees_dims(results)
     out["control"] = control_blocks(results, n)
@@ -301,7 +302,7 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_flight_args(p)
-    add_consistency_args(p)
+    add_consistency_args(p, first=False)
     p.add_argument(
         "--tails",
         type=float,

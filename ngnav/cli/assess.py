@@ -61,7 +61,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def consistency_header(out: dict) -> str:
     """The report's first line: scenario, runs averaged, compensation."""
     return (
-        f"{out['scenario']}: {out['runs']} Monte Carlo runs, compensation {out['method']}"
+        f"{out['scenario']}: {out['runs']} Monte Carlo runs"
+        + (f" from run {out['first_run']}" if out.get("first_run") else "")
+        + f", compensation {out['method']}"
         + (", smoothed estimates" if "smoothed" in out else "")
         + ", two-sided 95 % chi-square bounds on the run-averaged statistic"
     )
@@ -134,6 +136,7 @@ def cmd_consistency(args: argparse.Namespace) -> int:
         scheduler=args.scheduler,
         save_dir=args.save,
         smooth=args.smooth,
+        first=args.first,
     )
     if args.plot:
         from ngnav.plots import plot_nees
@@ -162,9 +165,18 @@ def cmd_consistency(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_consistency_args(p: argparse.ArgumentParser) -> None:
-    """The options of ``ngnav consistency`` (``python -m studies.consistency`` adds its own)."""
+def add_consistency_args(p: argparse.ArgumentParser, first: bool = True) -> None:
+    """The options of ``ngnav consistency`` (``python -m studies.consistency`` adds its own,
+    and splits runs 0 .. RUNS - 1 into draws itself: no ``--first``)."""
     p.add_argument("--runs", type=int, default=50)
+    if first:
+        p.add_argument(
+            "--first",
+            type=int,
+            default=0,
+            metavar="K",
+            help="index of the first run: runs K .. K + RUNS - 1, another draw (default: 0)",
+        )
     p.add_argument(
         "--workers",
         type=int,
