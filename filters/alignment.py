@@ -53,6 +53,7 @@ class AlignmentMixin:
     """Build and initialise the filter from the samples before the start and the first fix."""
 
     def _start(self, i_start: int, first: tuple) -> None:
+        self.counts["gps fix that started the filter"] += 1
         cfg = self.cfg
         ini = cfg.initial
         sa, invalid, t = self._sa[: self._n], self._inv[: self._n], self._t[: self._n]

@@ -54,6 +54,18 @@ from ngnav.records import (
 from ngnav.rotation import euler_from_quat
 from ngnav.runconfig import RunConfig
 
+#: Where a fix pushed into the pipeline ends (its counters): the one that set position and
+#: velocity at the start, those fused (through the gates, passed or not), those ignored
+#: (``use_gps`` off), and the three kinds that cannot be fused.
+FIX_OUTCOMES = (
+    "gps fix that started the filter",
+    "gps fixes through the gates",
+    "gps fixes ignored (no GPS)",
+    "gps fixes outside the array's time span",
+    "gps fixes before the filter start",
+    "gps fixes after the last array sample",
+)
+
 
 class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
     """The whole chain run as a stream: push samples and fixes, get estimates.
@@ -190,11 +202,12 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
         self._pending: list[tuple[int, int, tuple]] = []  # (idx, order, fix) after the start
         self._late: list[tuple] = []
         self._n_fix = 0
+        #: Every fix pushed ends in exactly one of ``FIX_OUTCOMES`` once the run finishes
+        #: (``gps fixes later than the fusion lag`` says how some of the fused came).
         self.counts: dict[str, int] = {
             "samples held (non-finite)": 0,
             "samples held (saturated)": 0,
-            "gps fixes outside the array's time span": 0,
-            "gps fixes before the filter start": 0,
+            **dict.fromkeys(FIX_OUTCOMES, 0),
             "gps fixes later than the fusion lag": 0,
         }
         self._ltp = LocalTangentPlane(cfg.lat0_deg, cfg.lon0_deg, cfg.alt0_m)

@@ -287,7 +287,9 @@ class StepMixin:
 
     def _fuse_fix(self, fix: tuple, i1: int, p_bound: np.ndarray | None) -> None:
         if not self.use_gps:
+            self.counts["gps fixes ignored (no GPS)"] += 1
             return
+        self.counts["gps fixes through the gates"] += 1
         nf = self.nf
         truth = self.truth
         t_fix, ned, vel, sig, vacc, _ = fix

@@ -113,6 +113,9 @@ class StreamMixin:
                 keep.append((idx, order, fix))
         self._pending = sorted(keep)
         self._run_blocks(final=True)
+        # a fix that came later than the fusion lag after the last block has no block left
+        self.counts["gps fixes after the last array sample"] += len(self._late) + len(self._pending)
+        self._late, self._pending = [], []
         if self.smoother is not None:
             self.smoother.posterior(self.nf)
         return self.n_epochs - n_before

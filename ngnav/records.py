@@ -412,6 +412,45 @@ class FlightTruth:
         return np.hstack([self.omega_b_rps, self.omega_dot_b_rps2, self.f_b_mps2])
 
 
+#: What a GPS fix may report and still be a fix of something flying: the latitude and
+#: longitude's own ranges; ellipsoidal heights from below the lowest land (-430 m) and
+#: geoid (-106 m) with margin to the edge of space (the Karman line), and ground speeds up
+#: to Mach 9 at sea level, beyond any air-breathing or tactical vehicle. Anything outside
+#: is a corrupt or garbage field: dropped at input and counted by kind
+#: (:func:`fix_range_problems`).
+FIX_ALT_RANGE_M = (-1000.0, 100_000.0)
+FIX_MAX_SPEED_MPS = 3000.0
+#: The kinds :func:`fix_range_problems` names, in the order it checks them.
+FIX_RANGE_KINDS = (
+    "latitude beyond +-90 deg",
+    "longitude beyond +-180 deg",
+    "altitude outside -1 km .. 100 km",
+    "speed above 3 km/s",
+)
+
+
+def fix_range_problems(
+    lat_deg: np.ndarray, lon_deg: np.ndarray, alt_m: np.ndarray, vel_ned_mps: np.ndarray
+) -> np.ndarray:
+    """Index into :data:`FIX_RANGE_KINDS` of each fix's first out-of-range field, -1 where
+    all are in range (M,); arrays (M,) and (M, 3), or scalars and (3,) for one fix."""
+    lat = np.atleast_1d(np.asarray(lat_deg, dtype=float))
+    lon = np.atleast_1d(np.asarray(lon_deg, dtype=float))
+    alt = np.atleast_1d(np.asarray(alt_m, dtype=float))
+    vel = np.asarray(vel_ned_mps, dtype=float).reshape(lat.shape[0], 3)
+    speed = np.sqrt(np.einsum("mi,mi->m", vel, vel))
+    bad = (
+        np.abs(lat) > 90.0,
+        np.abs(lon) > 180.0,
+        (alt < FIX_ALT_RANGE_M[0]) | (alt > FIX_ALT_RANGE_M[1]),
+        speed > FIX_MAX_SPEED_MPS,
+    )
+    out = np.full(lat.shape[0], -1)
+    for k in range(len(bad) - 1, -1, -1):
+        out[bad[k]] = k
+    return out
+
+
 @dataclass(frozen=True)
 class GpsFixes:
     """A sequence of M GPS fixes (see the module docstring for meanings).

@@ -25,7 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ngnav.records import ArraySamples, FlightTruth, GpsFixes
+from ngnav.records import (
+    FIX_RANGE_KINDS,
+    ArraySamples,
+    FlightTruth,
+    GpsFixes,
+    fix_range_problems,
+)
 
 GPS_COLUMNS: tuple[str, ...] = (
     "t_s",
@@ -216,6 +222,14 @@ def read_gps_csv(path: str | Path) -> tuple[GpsFixes, ReadReport]:
     bad_acc = ok & np.any(acc <= 0, axis=1)
     report.add("no fix (accuracy not positive)", int(np.count_nonzero(bad_acc)))
     ok &= ~bad_acc
+    vel = np.column_stack([col["vn_mps"], col["ve_mps"], col["vd_mps"]])
+    problem = np.full(t.shape, -1)
+    problem[ok] = fix_range_problems(
+        col["lat_deg"][ok], col["lon_deg"][ok], col["alt_m"][ok], vel[ok]
+    )
+    for k, kind in enumerate(FIX_RANGE_KINDS):
+        report.add(f"no fix ({kind})", int(np.count_nonzero(problem == k)))
+    ok &= problem < 0
     latency = col.get("latency_s", np.zeros_like(t))
     fixes = GpsFixes(
         t_s=t[ok],

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ngnav.records import ArraySamples, GpsFixes
+from ngnav.records import FIX_RANGE_KINDS, ArraySamples, GpsFixes, fix_range_problems
 from ngnav.runconfig import RunConfig, read_run_config_text, run_config_text
 from telemetry import ngnav_mavlink as mavlink
 from telemetry.frames import FrameCounts
@@ -388,6 +388,10 @@ class InputAssembler:
             return
         if row[6] <= 0 or row[7] <= 0 or row[8] <= 0:
             self.counts.add("gps accuracy not positive")
+            return
+        k = int(fix_range_problems(row[0], row[1], row[2], row[3:6])[0])
+        if k >= 0:
+            self.counts.add(f"gps {FIX_RANGE_KINDS[k]}")
             return
         if t_us <= self._last_gps_t:
             kind = "gps duplicate time" if t_us == self._last_gps_t else "gps out of order"

@@ -820,6 +820,43 @@ def test_gps_input_fix_type(fix_type: int, kept: int):
     assert counts.get("gps without fix", 0) == 1 - kept
 
 
+def _gps_input_at(lat_e7: int, lon_e7: int, alt_m: float, vn_mps: float, t_us: int = 1_000_000):
+    return common.MAVLink_gps_input_message(
+        t_us, 0, 0, 0, 0, 3, lat_e7, lon_e7, alt_m,
+        0.9, 1.1, vn_mps, 0.0, 0.0, 0.125, 1.75, 3.5, 9,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("lat_e7", "lon_e7", "alt_m", "vn_mps", "kind"),
+    [
+        (900_000_001, 0, 0.0, 0.0, "gps latitude beyond +-90 deg"),
+        (-900_000_001, 0, 0.0, 0.0, "gps latitude beyond +-90 deg"),
+        (0, 1_800_000_001, 0.0, 0.0, "gps longitude beyond +-180 deg"),
+        (0, -2_147_483_648, 0.0, 0.0, "gps longitude beyond +-180 deg"),
+        (0, 0, -1000.5, 0.0, "gps altitude outside -1 km .. 100 km"),
+        (0, 0, 100_000.5, 0.0, "gps altitude outside -1 km .. 100 km"),
+        (0, 0, 0.0, 3000.5, "gps speed above 3 km/s"),
+        (0, 0, 0.0, -3000.5, "gps speed above 3 km/s"),
+    ],
+)
+def test_gps_input_out_of_range_is_dropped_and_counted_by_kind(lat_e7, lon_e7, alt_m, vn_mps, kind):
+    """A latitude, longitude, altitude or speed no flying vehicle reports is dropped at input
+    and counted by its kind; the limits themselves are taken."""
+    got, counts = _read_fixes(common_frame(_gps_input_at(lat_e7, lon_e7, alt_m, vn_mps)))
+    assert got == [] and counts == {"frames decoded": 1, kind: 1}
+
+
+def test_gps_input_at_the_range_limits_is_taken():
+    got, counts = _read_fixes(
+        common_frame(_gps_input_at(900_000_000, 1_800_000_000, -1000.0, 3000.0, 1_000_000)),
+        common_frame(
+            _gps_input_at(-900_000_000, -1_800_000_000, 100_000.0, -3000.0, 2_000_000), seq=1
+        ),
+    )
+    assert len(got) == 2 and counts == {"frames decoded": 2}
+
+
 @pytest.mark.parametrize(
     ("flag", "index", "default"),
     [(IGNORE_HORIZ_ACC, 6, 4.25), (IGNORE_VERT_ACC, 7, 6.5), (IGNORE_SPEED_ACC, 8, 0.625)],
@@ -1048,8 +1085,9 @@ def test_gps_csv_written_columns(tmp_path: Path):
 
 
 def test_gps_csv_read_hand_written(tmp_path: Path):
-    """gps.csv read by header name; fix_type < 3, an empty cell and a zero accuracy are each
-    skipped and counted; latency_s read; every field of the kept fixes in its place."""
+    """gps.csv read by header name; fix_type < 3, an empty cell, a zero accuracy and each
+    out-of-range field are skipped and counted; latency_s read; every field of the kept
+    fixes in its place."""
     (tmp_path / "gps.csv").write_text(
         "lon_deg,t_s,lat_deg,alt_m,vd_mps,ve_mps,vn_mps,vel_acc_mps,v_acc_m,h_acc_m,"
         "latency_s,fix_type\n"
@@ -1058,12 +1096,20 @@ def test_gps_csv_read_hand_written(tmp_path: Path):
         "-106.3,0.2,34.2,1502.0,,60.0,1.0,0.1,3.0,1.5,0.05,3\n"
         "-106.2,0.3,34.3,1503.0,0.5,60.0,1.0,0.1,3.0,0.0,0.05,3\n"
         "-106.1,0.4,34.4,1504.5,-0.25,-61.0,2.5,0.2,4.0,2.5,0.125,4\n"
+        "-106.0,0.5,91.0,1505.0,0.5,60.0,1.0,0.1,3.0,1.5,0.05,3\n"
+        "-186.0,0.6,34.6,1505.0,0.5,60.0,1.0,0.1,3.0,1.5,0.05,3\n"
+        "-106.0,0.7,34.7,150500.0,0.5,60.0,1.0,0.1,3.0,1.5,0.05,3\n"
+        "-106.0,0.8,34.8,1505.0,0.5,3000.0,100.0,0.1,3.0,1.5,0.05,3\n"
     )
     fx, rep = read_gps_csv(tmp_path / "gps.csv")
     assert rep.counts == {
         "no fix (fix_type < 3)": 1,
         "no fix (empty or nan cell)": 1,
         "no fix (accuracy not positive)": 1,
+        "no fix (latitude beyond +-90 deg)": 1,
+        "no fix (longitude beyond +-180 deg)": 1,
+        "no fix (altitude outside -1 km .. 100 km)": 1,
+        "no fix (speed above 3 km/s)": 1,
     }
     np.testing.assert_array_equal(fx.t_s, [0.0, 0.4])
     np.testing.assert_array_equal(fx.lat_deg, [34.0, 34.4])
