@@ -94,9 +94,11 @@ def _distributed(fn, indices, on_result, workers, scheduler, failures, bar) -> N
             raise ValueError(f"no dask scheduler at {scheduler}: {_one_line(exc)}") from None
         cluster = None
     else:
-        # one thread per process: the filter is Python-bound, the GIL would serialise threads
+        # one thread per process: the filter is Python-bound, the GIL would serialise threads;
+        # the scheduler's HTTP server on a free port (its default, 8787, is taken by any other
+        # cluster on the machine, and dask then warns or fails)
         cluster = LocalCluster(
-            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0"
         )
         client = Client(cluster)
     try:

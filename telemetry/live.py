@@ -13,7 +13,9 @@ receives, ``udpout:HOST:PORT`` sends to that address.
   second of wall time with no other heartbeat (a silent input link included),
   with ``MAV_STATE_STANDBY`` before the filter starts. It stops on
   ``duration_s``, on ``idle_exit_s`` of silence after the first datagram, or
-  on SIGINT/SIGTERM, then flushes the filter.
+  on SIGINT/SIGTERM, then flushes the filter. What ground stations send back to the
+  output socket is read every pass of the loop and answered or counted
+  (:meth:`telemetry.session.StreamSession.feed_command`), so its queue never fills.
 """
 
 from __future__ import annotations
@@ -38,6 +40,9 @@ from telemetry.tlog import tlog_record
 
 #: Largest datagram :func:`play_frames` builds from frames due together, bytes.
 MAX_DATAGRAM = 1400
+#: Datagrams read from the output socket per pass of the serve loop (a pass takes at most
+#: the input socket's 0.2 s timeout): far above what a ground station sends.
+COMMANDS_PER_PASS = 64
 #: Socket buffer asked for on both ends (the kernel may cap it), bytes.
 SOCKET_BUFFER = 8 * 1024 * 1024
 
@@ -227,6 +232,25 @@ def serve(
             if fh is not None:
                 fh.write(tlog_record(f.t_us, f.frame))
 
+    def read_commands() -> None:
+        """Answer what ground stations sent to the output socket (at most a queue's worth)."""
+        for _ in range(COMMANDS_PER_PASS):
+            try:
+                # without blocking; the socket stays blocking for the estimates' sends
+                data, peer = tx.recvfrom(65535, socket.MSG_DONTWAIT)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                # an ICMP port-unreachable from the destination, say: nothing to read
+                return
+            for f in session.feed_command(data):
+                try:
+                    tx.sendto(f.frame, peer)
+                except OSError:
+                    session.counts.add("command answers not sent (socket error)")
+                    continue
+                sent[f.name] += 1
+
     # what exists now (the generated dialect's tables, above all) lives for the whole
     # run: keep it out of the garbage collector's sweeps, which otherwise cost tens of ms
     gc.collect()
@@ -242,6 +266,7 @@ def serve(
                 break
             if now - last_hb >= 1.0:
                 send([session.heartbeat()])
+            read_commands()
             try:
                 data, _ = rx.recvfrom(65535)
             except (TimeoutError, BlockingIOError):
@@ -265,8 +290,11 @@ def serve(
         tx.close()
         if fh is not None:
             fh.close()
+    counts = session.counts.as_dict()
+    for kind, n in session.command_decoder.counts.as_dict().items():
+        counts[f"return link: {kind}"] = n
     return ServeStats(
-        session.counts.as_dict(),
+        counts,
         dict(sent),
         n_dgrams,
         np.array(latencies),

@@ -14,6 +14,13 @@ fixes are kept; the filter starts from them once it arrives. If the filter
 fails (its covariance check, or an alignment without valid samples) the
 session stops estimating, counts it, and reports ``MAV_STATE_CRITICAL``; the
 input side goes on counting.
+
+What ground stations send back on the output link (:meth:`StreamSession.feed_command`)
+is answered where a navigation source has an answer: a PING is returned to its sender,
+``MAV_CMD_REQUEST_MESSAGE`` for a message this session sends is answered with its latest
+instance and an accepted ``COMMAND_ACK``, any other command addressed to it with
+``MAV_RESULT_UNSUPPORTED``. Heartbeats, parameter and file-transfer requests (ngnav has
+neither parameters nor files to serve) and everything else are counted and dropped.
 """
 
 from __future__ import annotations
@@ -137,6 +144,10 @@ class StreamSession:
         self.failure: str | None = None
         self.pending: list[OutputFrame] = []
         self._early: list[tuple] = []
+        #: What ground stations send back, decoded on its own (its own sequence counts).
+        self.command_decoder = FrameDecoder()
+        #: The latest message of each id this session sent (what REQUEST_MESSAGE can get).
+        self._sent: dict[int, mavlink.MAVLink_message] = {}
 
     # ------------------------------------------------------------ input
     def feed_datagram(self, data: bytes) -> None:
@@ -161,6 +172,50 @@ class StreamSession:
             return self.estimator.result()
         return None
 
+    def feed_command(self, data: bytes) -> list[OutputFrame]:
+        """One datagram a ground station sent back: the answer frames (see the module
+        docstring); every message is counted under ``commands`` in :attr:`counts`."""
+        out = []
+        for msg in self.command_decoder.decode_buffer(data):
+            name = msg.get_type()
+            answer = self._answer(msg)
+            if answer is None:
+                self.counts.add(f"commands dropped ({name})")
+                continue
+            self.counts.add(f"commands answered ({name})")
+            t_us = 0 if self.latest is None else round(self.latest.t_s * 1e6)
+            out.extend(OutputFrame(t_us, self.writer.pack(m), m.get_type()) for m in answer)
+        return out
+
+    def _answer(self, msg: mavlink.MAVLink_message) -> list[mavlink.MAVLink_message] | None:
+        """The replies to one ground-station message, or None (not for us, or no answer)."""
+        me = (self.settings.system_id, self.settings.component_id)
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        name = msg.get_type()
+        if name == "PING":
+            # a request carries target 0/0; the reply names the requester
+            if (msg.target_system, msg.target_component) != (0, 0):
+                return None
+            return [mavlink.MAVLink_ping_message(msg.time_usec, msg.seq, *src)]
+        if name not in ("COMMAND_LONG", "COMMAND_INT"):
+            return None
+        if msg.target_system not in (0, me[0]) or msg.target_component not in (0, me[1]):
+            return None
+        if msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE:
+            wanted = int(msg.param1)
+            if wanted == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+                reply = self.heartbeat_message()
+            else:
+                reply = self._sent.get(wanted)
+            result = mavlink.MAV_RESULT_ACCEPTED if reply is not None else mavlink.MAV_RESULT_DENIED
+            ack = mavlink.MAVLink_command_ack_message(msg.command, result, 0, 0, *src)
+            return [ack] if reply is None else [ack, reply]
+        return [
+            mavlink.MAVLink_command_ack_message(
+                msg.command, mavlink.MAV_RESULT_UNSUPPORTED, 0, 0, *src
+            )
+        ]
+
     def take(self) -> list[OutputFrame]:
         """The frames produced since the last call (when no ``on_frame`` is set)."""
         out, self.pending = self.pending, []
@@ -168,14 +223,19 @@ class StreamSession:
 
     def heartbeat(self) -> OutputFrame:
         """A HEARTBEAT frame now (for a live link's idle seconds); state from the session."""
+        t_us = 0 if self.latest is None else round(self.latest.t_s * 1e6)
+        return OutputFrame(t_us, self.writer.pack(self.heartbeat_message()), "HEARTBEAT")
+
+    def heartbeat_message(self) -> mavlink.MAVLink_message:
+        """The HEARTBEAT message now: ``MAV_STATE_CRITICAL`` after a failure, ``ACTIVE``
+        while the filter runs, ``STANDBY`` before."""
         if self.failure is not None:
             status = mavlink.MAV_STATE_CRITICAL
         elif self.estimator is not None and self.estimator.started:
             status = mavlink.MAV_STATE_ACTIVE
         else:
             status = mavlink.MAV_STATE_STANDBY
-        t_us = 0 if self.latest is None else round(self.latest.t_s * 1e6)
-        return OutputFrame(t_us, self.writer.pack(self.settings.heartbeat(status)), "HEARTBEAT")
+        return self.settings.heartbeat(status)
 
     # ---------------------------------------------------------- plumbing
     def _config(self, text: str) -> None:
@@ -241,6 +301,7 @@ class StreamSession:
         unix = self.wall_clock() if self.wall_clock is not None else None
         t_us = round(est.t_s * 1e6)
         for msg in self.encoder.epoch(est, unix):
+            self._sent[msg.get_msgId()] = msg
             frame = OutputFrame(t_us, self.writer.pack(msg), msg.get_type())
             if self.on_frame is not None:
                 self.on_frame(frame)

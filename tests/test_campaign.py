@@ -50,3 +50,25 @@ def test_results_arrive_as_runs_finish_and_a_failure_loses_nothing_else():
 def test_an_unreachable_scheduler_is_one_clear_error():
     with pytest.raises(ValueError, match=r"no dask scheduler at tcp://127\.0\.0\.1:9"):
         run_campaign(math.log, range(2), lambda i, v: None, scheduler="tcp://127.0.0.1:9")
+
+
+def test_a_campaign_runs_beside_another_cluster():
+    """Dask's default HTTP port (8787) taken, as by another campaign on the machine: the
+    campaign still runs, with no warning (pytest turns warnings into errors here)."""
+    import socket
+    import warnings
+
+    other = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        other.bind(("127.0.0.1", 8787))
+        other.listen()
+    except OSError:
+        pass  # already taken by something else: the same situation
+    try:
+        got = []
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            run_campaign(abs, range(-2, 2), lambda i, v: got.append(v), workers=2)
+    finally:
+        other.close()
+    assert sorted(got) == [0, 1, 1, 2]
