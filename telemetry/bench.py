@@ -13,7 +13,12 @@ reports:
 - latency: for every input datagram that produced estimates, the wall time
   from ``recvfrom`` returning in the stream process to its last estimate
   frame leaving ``sendto`` (measured there), p50/p99/max;
-- the wall time and the speed reached.
+- the wall time and the speed reached;
+- the stream process's resident size, sampled every ``rss_every_s`` of wall time, and its
+  least-squares slope (a soak: is memory flat).
+
+A flight longer than the scenario repeats its manoeuvres (:func:`extended`), so an hour
+of ``uav-survey``-like flight is ``--seconds 3600``.
 
 Only the stream process's own figures are latencies; queueing in the
 kernel's socket buffer before ``recvfrom`` is not in them, which is why the
@@ -29,7 +34,10 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
 
 from ngnav.sim.flight_scenario import FlightScenario
 from ngnav.sim.simulate import simulate_flight
@@ -56,6 +64,37 @@ class StreamBench:
     latency_p99_ms: float
     latency_max_ms: float
     stream_summary: dict
+    #: (wall s, resident MiB) of the stream process, every ``rss_every_s``
+    rss_mib: list[tuple[float, float]] = field(default_factory=list)
+    #: least-squares slope of the resident size over the run, MiB per wall hour
+    rss_slope_mib_per_h: float = float("nan")
+
+
+def extended(scn: FlightScenario, seconds: float) -> FlightScenario:
+    """``scn`` flown for at least ``seconds``: its legs from the first turn on repeat until
+    the flight is that long (take-off and climb once; the survey lines and turns again)."""
+    legs = list(scn.legs)
+    total = sum(leg.duration_s for leg in legs)
+    if total >= seconds:
+        return scn
+    first_turn = next((i for i, leg in enumerate(legs) if leg.bank_deg), 0)
+    cycle = legs[first_turn:]
+    cycle_s = sum(leg.duration_s for leg in cycle)
+    while total < seconds:
+        legs += cycle
+        total += cycle_s
+    return replace(scn, legs=tuple(legs))
+
+
+def _rss_mib(pid: int) -> float:
+    """Resident size of process ``pid``, MiB (Linux /proc; NaN elsewhere)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
 
 
 def run_stream_bench(
@@ -64,9 +103,10 @@ def run_stream_bench(
     speed: float,
     out_rate_hz: float = 50.0,
     busy_poll: bool = False,
+    rss_every_s: float = 60.0,
 ) -> StreamBench:
     """Stream ``seconds`` of ``scn`` through a real ``ngnav stream`` process (see module doc)."""
-    sim = simulate_flight(scn, 0)
+    sim = simulate_flight(extended(scn, seconds), 0)
     t = sim.samples.t_s
     keep = t <= t[0] + seconds
     samples = type(sim.samples)(t[keep], sim.samples.accel_mps2[keep])
@@ -125,8 +165,17 @@ def run_stream_bench(
         if "ngnav stream:" not in line:
             raise RuntimeError(f"ngnav stream did not start: {line!r} {proc.stderr.read()}")
         wall0 = time.perf_counter()
+        rss: list[tuple[float, float]] = [(0.0, _rss_mib(proc.pid))]
+
+        def sample_rss() -> None:
+            while not done.wait(rss_every_s):
+                rss.append((time.perf_counter() - wall0, _rss_mib(proc.pid)))
+
+        sampler = threading.Thread(target=sample_rss, daemon=True)
+        sampler.start()
         n_dgrams = play_frames(frames, Endpoint("udpout", "127.0.0.1", p_in), speed)
-        out, err = proc.communicate(timeout=3600)
+        rss.append((time.perf_counter() - wall0, _rss_mib(proc.pid)))
+        out, err = proc.communicate(timeout=24 * 3600)
         wall = time.perf_counter() - wall0
     finally:
         if proc.poll() is None:
@@ -139,6 +188,11 @@ def run_stream_bench(
         raise RuntimeError(f"ngnav stream failed: {err}")
     summary = json.loads(out[out.index("{") :])
     sent = sum(summary["frames sent"].values())
+    rss = sorted(r for r in rss if np.isfinite(r[1]))
+    slope = float("nan")
+    if len(rss) >= 3:
+        t_h, mib = np.array(rss).T
+        slope = float(np.polyfit(t_h / 3600.0, mib, 1)[0])
     return StreamBench(
         flight_s=float(samples.t_s[-1] - samples.t_s[0]),
         speed=speed,
@@ -153,4 +207,6 @@ def run_stream_bench(
         latency_p99_ms=summary["latency p99 ms"],
         latency_max_ms=summary["latency max ms"],
         stream_summary=summary,
+        rss_mib=[(round(t, 1), round(m, 1)) for t, m in rss],
+        rss_slope_mib_per_h=slope,
     )

@@ -173,7 +173,9 @@ def cmd_bench_stream(args: argparse.Namespace) -> int:
     if not any(o.startswith("gps.rate_hz=") for o in overrides):
         overrides.append("gps.rate_hz=10")
     scn = load_flight(args.scenario, overrides)
-    b = run_stream_bench(scn, args.seconds, args.speed, args.out_rate, args.busy_poll)
+    b = run_stream_bench(
+        scn, args.seconds, args.speed, args.out_rate, args.busy_poll, args.rss_every
+    )
     if args.json:
         from dataclasses import asdict
 
@@ -200,6 +202,13 @@ def cmd_bench_stream(args: argparse.Namespace) -> int:
         f"{f.get('gps fixes later than the fusion lag', 0)} fixes later than the fusion lag"
         + (f"; FAILED: {b.stream_summary['failure']}" if b.stream_summary["failure"] else "")
     )
+    if b.rss_mib:
+        mib = [m for _, m in b.rss_mib]
+        print(
+            f"  stream process resident size: {mib[0]:.1f} MiB at the start, {min(mib):.1f}-"
+            f"{max(mib):.1f} MiB over {len(mib)} samples, slope {b.rss_slope_mib_per_h:+.2f} "
+            "MiB per wall hour"
+        )
     return 0
 
 
@@ -237,11 +246,23 @@ def add_stream_parser(sub, add_flight_args) -> None:
         "bench-stream", help="load benchmark: a flight streamed through ngnav stream over UDP"
     )
     add_flight_args(p)
-    p.add_argument("--seconds", type=float, default=600.0, help="flight seconds (default: 600)")
+    p.add_argument(
+        "--seconds",
+        type=float,
+        default=600.0,
+        help="flight seconds; beyond the scenario its manoeuvres repeat (default: 600)",
+    )
     p.add_argument(
         "--speed", type=float, default=10.0, help="times real time; 1 = real time (default: 10)"
     )
     p.add_argument("--out-rate", type=float, default=50.0, help="estimate rate, Hz (default: 50)")
     p.add_argument("--busy-poll", action="store_true", help="run ngnav stream --busy-poll")
+    p.add_argument(
+        "--rss-every",
+        type=float,
+        default=60.0,
+        metavar="S",
+        help="sample the stream process's resident size every S wall seconds (default: 60)",
+    )
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_stream)
