@@ -209,9 +209,12 @@ def fit_static_poses(
         # report the axis errors per channel, not in the gauge basis
         names = _names(n, k)
         weights = np.concatenate([mix[: 2 * n], q @ mix[2 * n : 2 * n + n_z], mix[2 * n + n_z :]])
-        top = np.argsort(-np.abs(weights))[:3]
+        # every parameter within half of the largest weight, in the parameters' order: a
+        # tilt trading with three axis angles weighs all four alike, so a top-3 by size
+        # named a different three from one machine's rounding to the next
+        big = np.flatnonzero(np.abs(weights) >= 0.5 * np.abs(weights).max())
         raise ValueError(
-            f"the poses leave a combination of {', '.join(names[i] for i in top)} undetermined: "
+            f"the poses leave a combination of {', '.join(names[i] for i in big)} undetermined: "
             "add poses whose up directions differ (at least six, spanning all three axes)"
         )
     r = sol.fun

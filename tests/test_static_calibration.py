@@ -74,8 +74,11 @@ def test_too_few_poses_name_what_they_leave_undetermined():
     # the six faces only: enough readings, but a face's small tilt trades with the axis
     # angles of the channels across it (the edges' poses tell them apart)
     faces = poses_from_files(s.recordings[:6], *_sensor(s))
-    with pytest.raises(ValueError, match=r"a combination of pose \d+'s tilt \d, .* undetermined"):
+    with pytest.raises(ValueError, match=r"leave a combination of .* undetermined") as err:
         fit_static_poses(faces.means_mps2, faces.sigma_mps2, LAYOUT)
+    named = str(err.value).split("combination of ")[1].split(" undetermined")[0]
+    assert re.search(r"pose \d+'s tilt \d", named), named
+    assert len(re.findall(r"axis angle \d of channel \d", named)) >= 2, named
 
 
 def test_a_pose_that_moves_saturates_or_is_short_is_skipped_with_its_reason():
