@@ -25,6 +25,7 @@ neither parameters nor files to serve) and everything else are counted and dropp
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -202,7 +203,8 @@ class StreamSession:
         if msg.target_system not in (0, me[0]) or msg.target_component not in (0, me[1]):
             return None
         if msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE:
-            wanted = int(msg.param1)
+            # a garbage id (NaN, infinite) is no message this session sends
+            wanted = int(msg.param1) if math.isfinite(msg.param1) else -1
             if wanted == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
                 reply = self.heartbeat_message()
             else:

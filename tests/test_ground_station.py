@@ -40,7 +40,7 @@ def _decode(frames) -> list:
     return [mav.decode(bytearray(f.frame)) for f in frames]
 
 
-def _request(msg_id: int, target=(9, 200)):
+def _request(msg_id: float, target=(9, 200)):
     return common.MAVLink_command_long_message(
         *target, common.MAV_CMD_REQUEST_MESSAGE, 0, float(msg_id), 0, 0, 0, 0, 0, 0
     )
@@ -89,6 +89,9 @@ def test_request_message_answers_what_the_session_sends(flown_session):
     # a message it never sends: denied
     rc = _gcs(_request(common.MAVLINK_MSG_ID_RC_CHANNELS), 2)
     (ack,) = _decode(flown_session.feed_command(rc))
+    assert ack.result == common.MAV_RESULT_DENIED
+    # a garbage id is denied too, not an exception in the link's loop
+    (ack,) = _decode(flown_session.feed_command(_gcs(_request(float("nan")), 3)))
     assert ack.result == common.MAV_RESULT_DENIED
 
 
