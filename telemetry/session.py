@@ -184,7 +184,7 @@ class StreamSession:
                 self.counts.add(f"commands dropped ({name})")
                 continue
             self.counts.add(f"commands answered ({name})")
-            t_us = 0 if self.latest is None else round(self.latest.t_s * 1e6)
+            t_us = self._now_us()
             out.extend(OutputFrame(t_us, self.writer.pack(m), m.get_type()) for m in answer)
         return out
 
@@ -225,8 +225,11 @@ class StreamSession:
 
     def heartbeat(self) -> OutputFrame:
         """A HEARTBEAT frame now (for a live link's idle seconds); state from the session."""
-        t_us = 0 if self.latest is None else round(self.latest.t_s * 1e6)
-        return OutputFrame(t_us, self.writer.pack(self.heartbeat_message()), "HEARTBEAT")
+        return OutputFrame(self._now_us(), self.writer.pack(self.heartbeat_message()), "HEARTBEAT")
+
+    def _now_us(self) -> int:
+        """The run clock now, us: the latest estimate's time (0 before the first)."""
+        return 0 if self.latest is None else round(self.latest.t_s * 1e6)
 
     def heartbeat_message(self) -> mavlink.MAVLink_message:
         """The HEARTBEAT message now: ``MAV_STATE_CRITICAL`` after a failure, ``ACTIVE``
