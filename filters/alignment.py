@@ -56,10 +56,14 @@ class AlignmentMixin:
         self.counts["gps fix that started the filter"] += 1
         cfg = self.cfg
         ini = cfg.initial
-        sa, invalid, t = self._sa[: self._n], self._inv[: self._n], self._t[: self._n]
+        w0 = np.deg2rad(cfg.initial.rate_dps) if cfg.initial.alignment == "config" else np.zeros(3)
+        # before the start nothing is dropped (base 0); channels isolated already are out
+        sa = self._features(0, self._n, self._excluded, w0)
+        invalid = (self._chmask[: self._n] & ~self._excluded) != 0
+        t = self._t[: self._n]
         se = self._se
         dt = self.dt
-        noise = filter_noise(self.solver, cfg, None if se is None else se[:, 0:6])
+        noise = filter_noise(self._smat, cfg, None if se is None else se[:, 0:6])
         if self.method == "oracle":
             # no DR states: the oracle removes the whole geometry error (nothing left)
             noise = replace(noise, position_sigma_m=0.0)

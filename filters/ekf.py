@@ -287,6 +287,83 @@ class NavFilter(
         self._eye = np.eye(n)
         self._eye3 = np.eye(3)
         self._g = gravity_n_mps2()
+        self._consec_rejects = 0
+        self._consec_slip_rejects = 0
+        self._consec_vel_rejects = 0
+        self.last_rate_innovation = np.zeros(self.layout.nq)
+        #: Its covariance before the update (nq, nq): the parity test's metric.
+        self.last_rate_innovation_cov = np.eye(self.layout.nq)
+        self._last_wdot = np.zeros(3)
+        self._last_f = np.zeros(3)
+        #: True while a zero-rate update resets the rate at every block (the pipeline
+        #: sets it): the propagation then gives the rate one block's own noise
+        #: (FilterNoise.block_wdot_cov), not the loop's
+        self.rate_reset_each_block = False
+        self._t12 = np.eye(12)
+        self._eye12 = np.eye(N_NAV)
+        #: Which rate products measure the rate (nq,): all of them until channels are
+        #: excluded (:meth:`set_solve`).
+        self.rate_rows = np.ones(self.layout.nq, dtype=bool)
+        #: What aided quadratic terms leave in the solved [wdot, f] (6, 6) and rate
+        #: products (nq, 6), or None (:meth:`set_solve`).
+        self._aided_quadratics: np.ndarray | None = None
+        self._aided_in_quad: np.ndarray | None = None
+        #: A walk added to the biases' (k, k), per s: a suspect channel's offset
+        #: (:meth:`set_extra_bias_walk`).
+        self.extra_bias_walk = np.zeros((6 + self.layout.nq, 6 + self.layout.nq))
+        self._derive_feature_model()
+
+    def set_extra_bias_walk(self, cov_per_s: np.ndarray) -> None:
+        """Add ``cov_per_s`` (k, k) to the biases' random walk from now on (zeros: none).
+
+        While the parity names a group of channels without saying which of them fails,
+        the offset of the failing one is carried by the bias states (their raw ``S b``
+        holds every channel's offset), given room to move along the group's directions.
+        """
+        self.extra_bias_walk = np.asarray(cov_per_s, dtype=float).copy()
+        self._q_walk_cache = {}
+
+    def set_solve(
+        self,
+        noise: FilterNoise,
+        solve_matrix: np.ndarray,
+        quad_feedback: np.ndarray | None,
+        rate_rows: np.ndarray,
+        aided_quadratics: np.ndarray,
+        bias_map: np.ndarray,
+    ) -> None:
+        """Switch to a reduced solve of the array: channels excluded (:mod:`filters.reduced`).
+
+        The bias states are the raw feature biases ``S b`` of the solve; the new solve's
+        are ``bias_map`` (k, k) times the old (``S_m S^-1``, exact for a square solve),
+        and the estimate and covariance are mapped so. ``rate_rows`` (nq,) says which
+        products still measure the rate (its gate takes their number of dof);
+        ``aided_quadratics`` ``A_m`` (k, 6) is what the aided quadratic terms, computed
+        from the rate, leave in the solved features: a rate error reaches the angular
+        acceleration and force through it (:meth:`propagation_matrices`).
+        """
+        n = self.layout.n
+        bs = self.layout.bias
+        j = np.eye(n)
+        j[bs, bs] = bias_map
+        self.bias = bias_map @ self.bias
+        self.P = j @ self.P @ j.T
+        self._symmetrise()
+        self.noise = noise
+        self.solve_matrix = solve_matrix
+        self.quad_feedback = quad_feedback
+        self.rate_rows = np.asarray(rate_rows, dtype=bool).copy()
+        aided = np.asarray(aided_quadratics, dtype=float)
+        self._aided_quadratics = aided[0:6].copy()
+        self._aided_in_quad = aided[6:].copy()
+        self.gate_q = float(chi2.ppf(self.gate_probability, max(int(self.rate_rows.sum()), 1)))
+        self._derive_feature_model()
+
+    def _derive_feature_model(self) -> None:
+        """What the noise model, the solve and the forecast's feedback fix: the noise
+        blocks, the transition's and the rate measurement's bias columns, the caches."""
+        n = self.layout.n
+        k = 6 + self.layout.nq
         self._sww = self.noise.feature_cov[0:3, 0:3]
         # the rate's noise over one block (FilterNoise.block_wdot_cov): the loop's mapped
         # noise plus the positive part of what the mapping took off
@@ -294,19 +371,9 @@ class NavFilter(
         if self.noise.block_wdot_cov is not None:
             ev, vec = np.linalg.eigh(np.asarray(self.noise.block_wdot_cov) - self._sww)
             self._sww_block = self._sww + (vec * np.maximum(ev, 0.0)) @ vec.T
-        #: True while a zero-rate update resets the rate at every block (the pipeline
-        #: sets it): the propagation then gives the rate one block's own noise
-        #: (FilterNoise.block_wdot_cov), not the loop's
-        self.rate_reset_each_block = False
         self._sff = self.noise.feature_cov[3:6, 3:6]
         self._sfw = self.noise.feature_cov[3:6, 0:3]
         self._sqq = self.noise.feature_cov[6:, 6:]
-        self._consec_rejects = 0
-        self._consec_slip_rejects = 0
-        self._consec_vel_rejects = 0
-        self.last_rate_innovation = np.zeros(self.layout.nq)
-        self._last_wdot = np.zeros(3)
-        self._last_f = np.zeros(3)
         # what a bias error leaves in the compensated [wdot, f, quad] (FilterNoise.bias_effect)
         te = self.noise.bias_effect
         te = np.eye(k) if te is None else np.array(te, dtype=float)
@@ -322,8 +389,6 @@ class NavFilter(
         h_rate = np.zeros((self.layout.nq, n))
         h_rate[:, self.layout.bias] = te[6:]
         self._h_rate_base = h_rate
-        self._t12 = np.eye(12)
-        self._eye12 = np.eye(N_NAV)
         self._q12_cache: dict[tuple[int, float], np.ndarray] = {}
         self._q_walk_cache: dict[float, np.ndarray] = {}
         self._weights_cache: dict[tuple[int, float], tuple[np.ndarray, ...]] = {}
@@ -342,6 +407,7 @@ class NavFilter(
                 )
             d = d + np.einsum("rs,scm->rcm", fb, _product_derivatives(QUAD_PAIRS))
         self._quad_d = d
+        self._quad6_d = _product_derivatives(QUAD_PAIRS)  # (6, 3, 3): d q6 / dw = D @ w
 
     # ------------------------------------------------------------------ set-up
     def initialise(

@@ -49,6 +49,9 @@ class MeasurementsMixin:
             w_mean = shrink_to_size(w_mean, rate_var)
         h = self._h_rate_base.copy()
         h[:, RATE] = self._quad_d @ w_mean
+        if self._aided_in_quad is not None:
+            # the solved products hold A_q (q(w) - q(w_hat)) of the aided terms
+            h[:, RATE] += self._aided_in_quad @ (self._quad6_d @ w_mean)
         if self.layout.n_dr:
             h[:, self.layout.dr] = sg[6:]
         return pred, h
@@ -84,6 +87,11 @@ class MeasurementsMixin:
         if self.layout.n_dr:
             pred = pred + sg[6:] @ self.dr
         m = None if block is None else self.rate_noise_cross(*block, held)
+        rows = self.rate_rows
+        if not rows.all():
+            # products an excluded channel leaves unsolved are the rate's own (aided)
+            z = (quad_mean - pred)[rows]
+            return Measurement(z, h[rows], r[np.ix_(rows, rows)], None if m is None else m[:, rows])
         return Measurement(quad_mean - pred, h, r, m)
 
     def update_rate(
@@ -104,7 +112,8 @@ class MeasurementsMixin:
             return None
         meas = self.measure_rate(quad_mean, w_block, k, sg, block, held)
         self.last_rate_innovation = meas.z
-        nis, ok = self._gated_update(meas, self.gate_q)
+        self.last_rate_innovation_cov = meas.innovation_cov(self.P)
+        nis, ok = self._gated_update(meas, self.gate_q, self.last_rate_innovation_cov)
         self.counters.rate_updates += int(ok)
         self.counters.rate_rejected += int(not ok)
         return nis

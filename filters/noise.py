@@ -6,7 +6,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ngnav.frontend import ArraySolver
 from ngnav.runconfig import RunConfig
 
 
@@ -75,14 +74,17 @@ class FilterNoise:
 
 
 def filter_noise(
-    solver: ArraySolver, cfg: RunConfig, feedback: np.ndarray | None = None
+    solve_matrix: np.ndarray, cfg: RunConfig, feedback: np.ndarray | None = None
 ) -> FilterNoise:
-    """Feature noise and bias model from the channel model, mapped through the solver.
+    """Feature noise and bias model from the channel model, mapped through the solve.
 
     Parameters
     ----------
-    solver : ArraySolver
-        The nominal-geometry solve (operator ``S``, shape (k, N)).
+    solve_matrix : array (k, N)
+        The solve ``S`` (features from channels): the nominal geometry's
+        (:attr:`ngnav.frontend.ArraySolver.solve_matrix`), or with channels excluded the
+        reduced one (:mod:`filters.reduced`; zero columns for the excluded channels,
+        zero rows for the features they leave unsolved).
     cfg : RunConfig
         Channel noise, turn-on bias and bias random walk.
     feedback : array (k, 6), optional
@@ -115,10 +117,11 @@ def filter_noise(
         integrated over many blocks only. With the correction the block's own noise
         reaches the state as ``(I - E_6) n``, about ``A n``, and it stays None.
     """
-    s = solver.solve_matrix
+    s = np.asarray(solve_matrix, dtype=float)
     # a floor of 1e-6 m/s^2 keeps the prior positive definite when a config says "no bias"
     b0 = np.maximum(cfg.turn_on_bias_mps2, 1e-6)
-    feature_cov = solver.covariance()
+    # per sample: the weighted least squares' (H^T R^-1 H)^-1, for the full solve
+    feature_cov = (s * np.asarray(cfg.noise_sigma_mps2, dtype=float) ** 2) @ s.T
     bias_prior_cov = s @ np.diag(b0**2) @ s.T
     bias_rw_cov = s @ np.diag(cfg.bias_rw_mps2_rts**2) @ s.T
     # one sample's [wdot, f] noise with its quadratic terms' (the same block's: raw)

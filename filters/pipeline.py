@@ -25,7 +25,10 @@ import numpy as np
 
 from filters.alignment import AlignmentMixin
 from filters.ekf import NavFilter
+from filters.exclusion import ExclusionMixin, SuspectsMixin
+from filters.faults import ChannelMonitor
 from filters.noise import filter_noise
+from filters.reduced import ReducedSolve
 from filters.smoother import RESTARTS, SmootherLog
 from filters.state import ATT, POS, RATE, VEL
 from filters.step import StepMixin
@@ -67,7 +70,7 @@ FIX_OUTCOMES = (
 )
 
 
-class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
+class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsMixin):
     """The whole chain run as a stream: push samples and fixes, get estimates.
 
     One block at a time: the compensation's forecast, the nominal propagation,
@@ -182,20 +185,34 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
         # go with the mounting errors: the compensation takes them out with the rate
         aided = np.zeros_like(cfg.layout.design)
         aided[:, solver.aided_columns] = cfg.layout.design[:, solver.aided_columns]
+        #: The known mounting errors' effect on the channels (N, 12), with a forecast.
+        self._e_chan = None
         if method in ("gm11", "line", "last"):
             e = cfg.known_errors.error_matrix(cfg.layout)  # (N, 12)
-            self._se = self._smat @ (e + aided if solver.rate_aided else e)  # (k, 12)
-        self._e_true = None
+            self._e_chan = e + aided if solver.rate_aided else e
+            self._se = self._smat @ self._e_chan  # (k, 12)
+        self._d_true = None
         if method == "oracle":
-            self._e_true = self._smat @ (true_layout.design - cfg.layout.design + aided)
+            # the exact mounting-error term on the channels: true geometry, true motion
+            self._d_true = true_layout.design - cfg.layout.design + aided
         self.dt = dt_s
         self._k = cols.shape[0]
         # sample store: global index g lives at row g - base
         self._t = np.empty(0)
-        self._sa = np.empty((0, self._k))
-        self._inv = np.empty(0, dtype=bool)
-        self._chmask = np.empty(0, dtype=np.int64)  # bit i: channel i invalid or saturated
+        self._ach = np.empty((0, self.n_channels))  # calibrated channels, m/s^2
+        self._nfmask = np.empty(0, dtype=np.int64)  # bit i: channel i non-finite
+        self._chmask = np.empty(0, dtype=np.int64)  # bit i: channel i non-finite or saturated
+        self._excl = np.empty(0, dtype=np.int64)  # bit i: channel i excluded at the sample
+        #: Channels excluded from the samples arriving now (bitmask), and those the
+        #: filter's model is set for (:meth:`_switch_solve`).
+        self._excluded = 0
+        self._filter_mask = 0
+        self._reduced: dict[int, ReducedSolve] = {}
+        self._solved = np.ones(self._k, dtype=bool)
+        self._suspects = None  # a parity group being told apart (SuspectsMixin)
         self._bits = 1 << np.arange(self.n_channels, dtype=np.int64)
+        #: The channels' health tests (flat line, noise level, parity; :mod:`filters.faults`).
+        self.monitor = ChannelMonitor(cfg.noise_sigma_mps2, cfg.range_mps2, self._smat[cols >= 6])
         self._base = 0
         self._n = 0  # samples received (global count)
         self._fixes: list[tuple] = []  # (t, ned(3), vel(3), sig(3), vel_acc, arrival order)
@@ -291,6 +308,7 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
                 est.bound_nav,
                 est.aoa_rad,
                 est.aoa_sigma_rad,
+                est.faulty_channels,
             )
         )
 
@@ -320,6 +338,7 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
                 "gps velocities rejected (gate)": nf.counters.gps_rejected_vel,
                 "gps resets after rejections": nf.counters.gps_resets,
                 "gps resets after an outage": nf.counters.gps_gap_resets,
+                "channel faults found": len(self.monitor.events),
                 "rate updates": nf.counters.rate_updates,
                 "rate updates rejected (gate)": nf.counters.rate_rejected,
                 "zero-rate updates at rest": nf.counters.zero_rate_used,
@@ -348,6 +367,7 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
             np.array(self._rate_nis_t),
             self.latest,
             smoothed,
+            tuple(self.monitor.events),
         )
 
     def _smooth(self) -> tuple[Estimates, int]:
@@ -356,7 +376,9 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin):
         rows, restarts = log.smooth(self.nf.layout)
         if len(rows) != len(self._rows):
             raise RuntimeError(f"smoother: {len(rows)} epochs for {len(self._rows)} estimates")
-        return Estimates.from_rows([(*r, None, None, None) for r in rows]), restarts
+        faulty = [r[-1] for r in self._rows]
+        rows = [(*r, None, None, None, f) for r, f in zip(rows, faulty, strict=True)]
+        return Estimates.from_rows(rows), restarts
 
 
 def run_filter(

@@ -50,6 +50,12 @@ class ProcessMixin:
         fc[VEL, ATT] = -skew(f_n)
         fc[VEL, self.layout.bias] = -(c @ self._bias_effect_f)
         fc[ATT, RATE] = c
+        if self._aided_quadratics is not None:
+            # aided quadratic terms (channels excluded): the features hold A_m q(w_hat),
+            # so a rate error reaches wdot and f as -A_m J(w) dw
+            aj = self._aided_quadratics @ (self._quad6_d @ self.w)  # (6, 3)
+            fc[RATE, RATE] = -aj[0:3]
+            fc[VEL, RATE] = -(c @ aj[3:6])
         if self.layout.n_dr:
             dr = self.layout.dr
             fc[RATE, dr] = -sg[0:3]
@@ -84,7 +90,7 @@ class ProcessMixin:
             n = self.layout.n
             q = np.zeros((n, n))
             bs = self.layout.bias
-            q[bs, bs] = self.noise.bias_rw_cov * t
+            q[bs, bs] = (self.noise.bias_rw_cov + self.extra_bias_walk) * t
             if self.layout.n_aoa:
                 ia = self.layout.aoa.start
                 q[ia, ia] = self.aoa_rw_rad_rts**2 * t

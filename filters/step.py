@@ -47,8 +47,12 @@ class StepMixin:
         nq = self._nq
         i0 = self._i0
         b = self._base
-        xs = self._sa[i0 + 1 - b : i1 + 1 - b].copy()
-        bad = self._inv[i0 + 1 - b : i1 + 1 - b]
+        excluded = int(np.bitwise_or.reduce(self._excl[i0 + 1 - b : i1 + 1 - b]))
+        if excluded != self._filter_mask:
+            self._switch_solve(excluded)
+            se = self._se
+        xs = self._features(i0 + 1, i1 + 1, excluded, nf.w)
+        bad = (self._chmask[i0 + 1 - b : i1 + 1 - b] & ~excluded) != 0
         kk = xs.shape[0]
         window = self._window
         e = self._e + 1
@@ -62,11 +66,11 @@ class StepMixin:
             phi_hat[0:6] = x_hat[3:9]
             phi_hat[6:] = (wx * wx, wy * wy, wz * wz, wy * wz, wx * wz, wx * wy)
             xs -= se @ phi_hat
-        self.block_faulty = 0
+        self.block_faulty = excluded
         if np.any(bad):
             fill = self._last_mean if phi_hat is None else phi_hat[self._cols] + nf.bias
             xs[bad] = fill
-            self.block_faulty = int(np.bitwise_or.reduce(self._chmask[i0 + 1 - b : i1 + 1 - b]))
+            self.block_faulty |= int(np.bitwise_or.reduce(self._chmask[i0 + 1 - b : i1 + 1 - b]))
         n_ok = kk - int(np.count_nonzero(bad))
         sg = sg_true = None
         if self._with_dr:
@@ -144,6 +148,15 @@ class StepMixin:
                 quad_mean = quad_mean - quad_fix
             nis = nf.update_rate(quad_mean, w_blk, n_ok, sg, held)
             self.last_rate_nis = np.nan if nis is None else nis
+            if nis is not None:
+                self.monitor.observe_parity(
+                    nf.t_s, nf.last_rate_innovation, nf.last_rate_innovation_cov
+                )
+                for channels, t_s in self.monitor.take_ambiguous():
+                    self._suspect(channels, t_s)
+                self._test_suspects()
+                for channel, onset_s in self.monitor.take_isolations():
+                    self._exclude_from(channel, onset_s)
             if self.keep_estimates:
                 self._rate_nis.append(self.last_rate_nis)
                 self._rate_nis_t.append(nf.t_s)
@@ -235,6 +248,8 @@ class StepMixin:
                             np.zeros(nf.layout.n), p_bound, np.zeros(1), np.array([[r]]), hs
                         )
         self._p_bound = p_bound
+        if self._suspects is not None:
+            self.block_faulty |= sum(1 << c for c in self._suspects[0])
         nf.check_covariance("block", full=bool(fixes) or e % self._full_check_every == 0)
         self._e = e
         self._i0 = i1

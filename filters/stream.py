@@ -31,23 +31,24 @@ class StreamMixin:
         if t_s.shape[0] == 0:
             return 0
         cfg = self.cfg
-        finite = np.all(np.isfinite(raw), axis=1)
+        nonfinite = ~np.isfinite(raw)
         with np.errstate(invalid="ignore"):
-            saturated = finite & np.any(np.abs(raw) >= cfg.range_mps2 * (1 - 1e-9), axis=1)
-        invalid = ~finite | saturated
-        self.counts["samples held (non-finite)"] += int(np.count_nonzero(~finite))
-        self.counts["samples held (saturated)"] += int(np.count_nonzero(saturated))
-        a = (np.where(invalid[:, None], cfg.offset_mps2, raw) - cfg.offset_mps2) / cfg.scale
-        sa = a @ self._smat.T  # (K, k) solved features, before compensation
-        if self._e_true is not None:
+            bad_ch = nonfinite | (np.abs(raw) >= cfg.range_mps2 * (1 - 1e-9))
+        nf_bits, bad_bits = nonfinite @ self._bits, bad_ch @ self._bits
+        self.monitor.observe_samples(t_s, raw)  # ahead of the filter by the fusion lag
+        self._count_held(nf_bits, bad_bits, self._excluded, 1)
+        # a bad channel reads its offset (zero once calibrated): a row held whole then
+        # holds no NaN, and a row whose bad channel is excluded keeps its good ones
+        a = (np.where(bad_ch, cfg.offset_mps2, raw) - cfg.offset_mps2) / cfg.scale
+        if self._d_true is not None:
             # the exact mounting-error term: true geometry, true motion
             tr = self.truth
             g = slice(self._n, self._n + t_s.shape[0])
             phi = kinematic_features(tr.omega_dot_b_rps2[g], tr.f_b_mps2[g], tr.omega_b_rps[g])
-            sa -= phi @ self._e_true.T
-        with np.errstate(invalid="ignore"):
-            bad_ch = ~np.isfinite(raw) | (np.abs(raw) >= cfg.range_mps2 * (1 - 1e-9))
-        self._append(t_s, sa, invalid, bad_ch @ self._bits)
+            a -= phi @ self._d_true.T
+        self._append(t_s, a, nf_bits, bad_bits)
+        for channel, onset_s in self.monitor.take_isolations():
+            self._exclude_from(channel, onset_s)
         return self._advance()
 
     def push_fix(
@@ -205,7 +206,15 @@ class StreamMixin:
                 break
             self._block(i1)
 
-    def _append(self, t_s, sa, invalid, chmask) -> None:
+    def _count_held(self, nf_bits, bad_bits, excluded, sign: int) -> None:
+        """Count (sign +1) or uncount (-1) the rows held for a bad channel not excluded:
+        non-finite when one of those is non-finite, else saturated."""
+        bad = (bad_bits & ~excluded) != 0
+        nonfinite = (nf_bits & ~excluded) != 0
+        self.counts["samples held (non-finite)"] += sign * int(np.count_nonzero(nonfinite))
+        self.counts["samples held (saturated)"] += sign * int(np.count_nonzero(bad & ~nonfinite))
+
+    def _append(self, t_s, a, nf_bits, bad_bits) -> None:
         """Append rows to the sample store (amortised growth; processed rows dropped)."""
         m = t_s.shape[0]
         used = self._n - self._base
@@ -214,7 +223,7 @@ class StreamMixin:
             drop = max(0, self._i0 - self._base) if self.started else 0
             keep = slice(drop, used)
             cap = max(4096, 2 * (used - drop + m))
-            for name in ("_t", "_sa", "_inv", "_chmask"):
+            for name in ("_t", "_ach", "_nfmask", "_chmask", "_excl"):
                 old = getattr(self, name)
                 new = np.empty((cap, *old.shape[1:]), dtype=old.dtype)
                 new[: used - drop] = old[keep]
@@ -223,7 +232,8 @@ class StreamMixin:
             used -= drop
         r = slice(used, used + m)
         self._t[r] = t_s
-        self._sa[r] = sa
-        self._inv[r] = invalid
-        self._chmask[r] = chmask
+        self._ach[r] = a
+        self._nfmask[r] = nf_bits
+        self._chmask[r] = bad_bits
+        self._excl[r] = self._excluded
         self._n += m

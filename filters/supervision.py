@@ -91,9 +91,14 @@ class Counters:
 class SupervisionMixin:
     """Gated updates, runs of rejections, the heading check, covariance checks."""
 
-    def _gated_update(self, meas: Measurement, gate: float | None = None) -> tuple[float, bool]:
-        """Fuse ``meas`` if its NIS passes ``gate`` (default the 3-dof one); (NIS, fused)."""
-        nis = quadratic_form(meas.z, meas.innovation_cov(self.P))
+    def _gated_update(
+        self, meas: Measurement, gate: float | None = None, s: np.ndarray | None = None
+    ) -> tuple[float, bool]:
+        """Fuse ``meas`` if its NIS passes ``gate`` (default the 3-dof one); (NIS, fused).
+
+        ``s`` is the innovation covariance when the caller has it already.
+        """
+        nis = quadratic_form(meas.z, meas.innovation_cov(self.P) if s is None else s)
         if not np.isfinite(nis) or nis > (self.gate3 if gate is None else gate):
             return nis, False
         self._apply(meas)

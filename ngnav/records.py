@@ -130,6 +130,40 @@ class ArrayKinematics:
 
 
 @dataclass(frozen=True)
+class FaultEvent:
+    """One failed channel found by the health tests (:mod:`filters.faults`).
+
+    Attributes
+    ----------
+    channels : tuple of int
+        The channel (1-based), or the channels the parity cannot tell apart.
+    kind : str
+        ``dead``, ``stuck``, ``saturated``, ``noisy`` (named by the channel's own
+        samples) or ``drift`` (an offset only the parity sees).
+    detected_at_s : float
+        When a test first failed, run clock, s.
+    isolated_at_s : float
+        When the channel was named alone, s (NaN while it is not).
+    """
+
+    channels: tuple[int, ...]
+    kind: str
+    detected_at_s: float
+    isolated_at_s: float = float("nan")
+
+    @property
+    def isolated(self) -> bool:
+        """True once one channel is named."""
+        return not np.isnan(self.isolated_at_s)
+
+    def describe(self) -> str:
+        """``channel 6 dead: detected 20.025 s, isolated 20.025 s`` (or not isolated)."""
+        which = " or ".join(str(c) for c in self.channels)
+        iso = f"isolated {self.isolated_at_s:.3f} s" if self.isolated else "not isolated"
+        return f"channel {which} {self.kind}: detected {self.detected_at_s:.3f} s, {iso}"
+
+
+@dataclass(frozen=True)
 class GpsUpdateResult:
     """Innovation statistics of one GPS fix: NIS of position and velocity, and acceptance.
 
@@ -193,7 +227,9 @@ class NavEstimate:
     rate_updates_rejected : int
         Rate updates rejected by their gate so far.
     faulty_channels : int
-        Bit ``i`` set: channel ``i`` was invalid or saturated in this block.
+        Bit ``i`` set: channel ``i + 1`` was invalid or saturated in this block, is
+        excluded as failed, or is one of a group the parity suspects
+        (:mod:`filters.faults`, :mod:`filters.exclusion`).
     state_blocks : tuple of (str, int)
         The error state's ordered ``(name, dof)`` blocks that ``cov`` follows; by
         default the four navigation blocks alone (a 12 x 12 ``cov``).
@@ -278,6 +314,8 @@ class Estimates:
         The same filter's covariance linearised at the truth (simulations).
     aoa_rad, aoa_sigma_rad : arrays (E,) or None
         The angle-of-attack estimate and its 1-sigma, rad, when the filter carries it.
+    faulty_channels : array (E,) of int or None
+        Each epoch's :attr:`NavEstimate.faulty_channels` bitmask (None when not kept).
     """
 
     t_s: np.ndarray
@@ -290,6 +328,7 @@ class Estimates:
     bound_nav: np.ndarray | None = None
     aoa_rad: np.ndarray | None = None
     aoa_sigma_rad: np.ndarray | None = None
+    faulty_channels: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         freeze_fields(
@@ -313,6 +352,7 @@ class Estimates:
                     e.bound_nav,
                     e.aoa_rad,
                     e.aoa_sigma_rad,
+                    e.faulty_channels,
                 )
                 for e in epochs
             ]
@@ -349,7 +389,8 @@ class RunResult:
     keep each epoch's navigation covariance (12 x 12); ``final`` is the last epoch's
     whole record, with the full covariance and the estimated biases, sensor positions
     and angle-of-attack states. ``smoothed`` holds the smoothed epochs of a run made
-    with ``smooth=True`` (the same epochs; no angle of attack, no bound).
+    with ``smooth=True`` (the same epochs; no angle of attack, no bound); ``faults``
+    the failed channels the health tests found (:mod:`filters.faults`).
     """
 
     estimates: Estimates
@@ -362,6 +403,8 @@ class RunResult:
     rate_nis_t_s: np.ndarray | None = None
     final: NavEstimate | None = None
     smoothed: Estimates | None = None
+    #: The failed channels found (:class:`FaultEvent`), in the order found.
+    faults: tuple[FaultEvent, ...] = ()
 
 
 @dataclass(frozen=True)

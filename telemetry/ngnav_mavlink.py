@@ -17619,7 +17619,7 @@ class MAVLink(object):
         samples_held              : Samples held so far (non-finite or saturated). (type:uint32_t)
         rate_rejected             : Rate measurements rejected by the gate so far. (type:uint32_t)
         forecast_fallbacks        : Compensation forecasts that fell back so far. (type:uint32_t)
-        faulty_channels           : Bit i set: channel i was invalid or saturated in the last block. (type:uint16_t)
+        faulty_channels           : Bit i set: channel i+1 was invalid or saturated in the last block, or fails a health test (dead, stuck, saturated, noisy, or its parity). (type:uint16_t)
         flags                     : Health flags. (type:uint16_t, values:NGNAV_HEALTH_FLAGS)
         compensation              : Compensation in use. (type:uint8_t, values:NGNAV_COMPENSATION)
 
@@ -17637,7 +17637,7 @@ class MAVLink(object):
         samples_held              : Samples held so far (non-finite or saturated). (type:uint32_t)
         rate_rejected             : Rate measurements rejected by the gate so far. (type:uint32_t)
         forecast_fallbacks        : Compensation forecasts that fell back so far. (type:uint32_t)
-        faulty_channels           : Bit i set: channel i was invalid or saturated in the last block. (type:uint16_t)
+        faulty_channels           : Bit i set: channel i+1 was invalid or saturated in the last block, or fails a health test (dead, stuck, saturated, noisy, or its parity). (type:uint16_t)
         flags                     : Health flags. (type:uint16_t, values:NGNAV_HEALTH_FLAGS)
         compensation              : Compensation in use. (type:uint8_t, values:NGNAV_COMPENSATION)
 

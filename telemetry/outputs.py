@@ -13,7 +13,8 @@ Hamilton scalar-first body-to-NED quaternion)
 - ``HEARTBEAT``: ``type`` (default ``MAV_TYPE_FIXED_WING``), ``autopilot``
   (default ``MAV_AUTOPILOT_GENERIC``), ``system_status`` ``MAV_STATE_ACTIVE``
   while estimating, ``MAV_STATE_STANDBY`` before the filter starts or when
-  the input link is silent, ``MAV_STATE_CRITICAL`` after the filter failed.
+  the input link is silent, ``MAV_STATE_CRITICAL`` after the filter failed or while
+  a channel fails a health test.
 - ``SYSTEM_TIME``: ``time_boot_ms`` (run clock), ``time_unix_usec`` (the run
   clock on :data:`telemetry.tlog.EPOCH_BASE_US` in a replay, the wall clock live).
 - ``ATTITUDE_QUATERNION``: ``q1..q4`` (w, x, y, z), body rates rad/s.

@@ -232,12 +232,14 @@ class StreamSession:
         return 0 if self.latest is None else round(self.latest.t_s * 1e6)
 
     def heartbeat_message(self) -> mavlink.MAVLink_message:
-        """The HEARTBEAT message now: ``MAV_STATE_CRITICAL`` after a failure, ``ACTIVE``
-        while the filter runs, ``STANDBY`` before."""
+        """The HEARTBEAT message now: ``MAV_STATE_CRITICAL`` after a failure or while a
+        channel fails a health test (still navigating: ``NGNAV_ARRAY_HEALTH`` names the
+        channels), ``ACTIVE`` while the filter runs, ``STANDBY`` before."""
         if self.failure is not None:
             status = mavlink.MAV_STATE_CRITICAL
         elif self.estimator is not None and self.estimator.started:
-            status = mavlink.MAV_STATE_ACTIVE
+            faulty = self.estimator.monitor.faulty_mask
+            status = mavlink.MAV_STATE_CRITICAL if faulty else mavlink.MAV_STATE_ACTIVE
         else:
             status = mavlink.MAV_STATE_STANDBY
         return self.settings.heartbeat(status)

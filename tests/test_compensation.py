@@ -87,11 +87,13 @@ def test_channel_count_mismatch():
 
 
 def _channel_config(corrected: bool):
-    """What ``filter_noise`` reads of a RunConfig: the channel model (1 mg turn-on
-    bias, 1e-5 m/s^2/sqrt(s) walk) and whether the forecast's error is corrected."""
+    """What ``filter_noise`` reads of a RunConfig: the channel model (unit noise, as the
+    tests' solvers weigh, 1 mg turn-on bias, 1e-5 m/s^2/sqrt(s) walk) and whether the
+    forecast's error is corrected."""
     from types import SimpleNamespace
 
     return SimpleNamespace(
+        noise_sigma_mps2=np.ones(9),
         turn_on_bias_mps2=np.full(9, 0.0098),
         bias_rw_mps2_rts=np.full(9, 1e-5),
         position_sigma_m=0.0,
@@ -184,7 +186,8 @@ def test_one_blocks_own_noise_is_raw_unless_the_forecast_is_corrected(corrected)
 
     cfg = _channel_config(corrected)
     solver = ArraySolver(nine_accelerometer_cube(0.1))
-    noise = filter_noise(solver, cfg, 0.05 * rng.standard_normal((solver.solve_matrix.shape[0], 6)))
+    s = solver.solve_matrix
+    noise = filter_noise(s, cfg, 0.05 * rng.standard_normal((s.shape[0], 6)))
     if corrected:
         assert noise.block_wdot_cov is None
     else:
@@ -226,7 +229,7 @@ def test_forecast_feedback_returns_the_bias_estimates_error():
     solver = ArraySolver(nine_accelerometer_cube(0.1))
     k = solver.solve_matrix.shape[0]
     feedback = 0.05 * rng.standard_normal((k, 6))
-    noise = filter_noise(solver, cfg, feedback)
+    noise = filter_noise(solver.solve_matrix, cfg, feedback)
     a_k = np.linalg.inv(np.eye(6) + feedback[0:6])
     np.testing.assert_allclose(noise.bias_effect[0:6, 0:6], a_k, atol=1e-12)
     np.testing.assert_allclose(noise.bias_effect[6:, 0:6], -feedback[6:] @ a_k, atol=1e-12)
@@ -256,7 +259,7 @@ def test_forecast_feedback_returns_the_sensor_positions_through_the_loop():
     solver = ArraySolver(layout, np.full(9, 1e-3))
     k = solver.solve_matrix.shape[0]
     se = 0.07 * np.eye(k, 12) + 0.03 * rng.standard_normal((k, 12))
-    noise = filter_noise(solver, _channel_config(False), se[:, 0:6])
+    noise = filter_noise(solver.solve_matrix, _channel_config(False), se[:, 0:6])
 
     def position_filter(bias_effect):
         cov = solver.covariance()

@@ -1162,7 +1162,7 @@ ESTIMATE_HEADER = [
     "vn_mps_sigma", "ve_mps_sigma", "vd_mps_sigma",
     "att_n_rad_sigma", "att_e_rad_sigma", "att_d_rad_sigma",
     "wx_radps_sigma", "wy_radps_sigma", "wz_radps_sigma",
-    "roll_deg", "pitch_deg", "yaw_deg", "aoa_deg", "aoa_deg_sigma",
+    "roll_deg", "pitch_deg", "yaw_deg", "aoa_deg", "aoa_deg_sigma", "faulty_channels",
 ]  # fmt: skip
 
 
@@ -1180,9 +1180,10 @@ def _quat_from_euler(roll: float, pitch: float, yaw: float) -> list[float]:
 
 @pytest.mark.parametrize("with_aoa", [True, False])
 def test_estimates_csv_columns(tmp_path: Path, scenario, with_aoa: bool):
-    """estimates.csv: each of the 37 columns against its hand formula (WGS-84 lat/lon/alt,
+    """estimates.csv: each of the 38 columns against its hand formula (WGS-84 lat/lon/alt,
     sigmas sqrt(P) with lat/lon sigma = sigma_N/(M+h), sigma_E/((N+h) cos lat) in deg, ZYX
-    angles and angle of attack in deg, empty angle of attack without the state)."""
+    angles and angle of attack in deg, empty angle of attack without the state, the
+    faulty-channels bitmask as an integer)."""
     cfg = scenario.config
     rpy = np.array([[0.1, -0.2, 2.5], [-0.3, 0.15, -1.25]])
     pos = np.array([[120.0, -340.0, -25.0], [121.5, -338.0, -24.0]])
@@ -1201,6 +1202,7 @@ def test_estimates_csv_columns(tmp_path: Path, scenario, with_aoa: bool):
         cov_nav=cov,
         aoa_rad=aoa[0],
         aoa_sigma_rad=aoa[1],
+        faulty_channels=np.array([0, 0b100100000]),
     )
     write_estimates_csv(tmp_path / "est.csv", est, cfg)
     header, rows = _csv(tmp_path / "est.csv")
@@ -1226,6 +1228,7 @@ def test_estimates_csv_columns(tmp_path: Path, scenario, with_aoa: bool):
             **dict(zip(("roll_deg", "pitch_deg", "yaw_deg"), np.degrees(rpy[e]), strict=True)),
             "aoa_deg": math.degrees(aoa[0][e]) if with_aoa else math.nan,
             "aoa_deg_sigma": math.degrees(aoa[1][e]) if with_aoa else math.nan,
+            "faulty_channels": [0, 288][e],
         }
         assert list(exp) == ESTIMATE_HEADER
         for col in ESTIMATE_HEADER:

@@ -1,4 +1,4 @@
-"""Judging the filter on simulated flights: ``ngnav evaluate`` and ``ngnav consistency``.
+"""Judging the filter on simulated flights: ``ngnav evaluate``, ``consistency``, ``faults``.
 
 The report lines of ``consistency`` are public (:func:`consistency_header`,
 :func:`block_line`, :func:`target_line`, :func:`print_run_summary`,
@@ -165,6 +165,64 @@ def cmd_consistency(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_faults(args: argparse.Namespace) -> int:
+    from filters.fault_trials import fault_campaign
+    from ngnav.sim.faults import FAULT_KINDS
+
+    kinds = tuple(args.kinds.split(",")) if args.kinds else FAULT_KINDS
+    bad = [k for k in kinds if k not in FAULT_KINDS]
+    if bad:
+        raise ValueError(f"--kinds: {bad[0]!r} is not one of {', '.join(FAULT_KINDS)}")
+    if args.runs < 0 or args.clean_runs < 0:
+        raise ValueError("--runs and --clean-runs must be >= 0")
+    scn = flight_scenario(args)
+    out = fault_campaign(
+        scn,
+        kinds,
+        args.runs,
+        args.clean_runs,
+        drift_mps2_per_s=args.drift,
+        watch_s=args.watch,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        progress=show_progress() and not args.json,
+    )
+    if args.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    print(
+        f"{out['scenario']}: {out['runs']} trials per kind (channel i mod N + 1), watched "
+        f"{out['watch_s']:g} s after the fault; drift {out['drift_mps2_per_s']:g} m/s^2/s"
+    )
+
+    def ms(st: dict) -> str:
+        if not st["n"]:
+            return "-"
+        return f"{1000 * st['median']:.0f} / {1000 * st['worst']:.0f} ms"
+
+    for kind, r in out["kinds"].items():
+        line = (
+            f"  {kind:9s} detected {r['detected']}/{r['trials']} (median / worst {ms(r['detection_s'])}), "
+            f"isolated to the channel {r['isolated_right']} ({ms(r['isolation_s'])}), "
+            f"to its pair only {r['not_isolable']}; alarms on other channels {r['other_alarms']}"
+        )
+        if kind == "drift":
+            a = r["attitude_sigmas_at_detection"]
+            if a["n"]:
+                line += (
+                    f"; attitude error at detection {a['median']:.2f} / {a['worst']:.2f} sigma, "
+                    f"within 3 sigma {r['within_3_sigma']}/{r['detected']}"
+                )
+        print(line)
+    ff = out["fault_free"]
+    if ff["flights"]:
+        print(
+            f"  fault-free: {ff['flights']} flights, {ff['flight_hours']:.2f} flight-hours, "
+            f"{ff['alarms']} alarms"
+        )
+    return 0
+
+
 def add_consistency_args(p: argparse.ArgumentParser, first: bool = True) -> None:
     """The options of ``ngnav consistency`` (``python -m studies.consistency`` adds its own,
     and splits runs 0 .. RUNS - 1 into draws itself: no ``--first``)."""
@@ -206,7 +264,7 @@ def add_consistency_args(p: argparse.ArgumentParser, first: bool = True) -> None
 
 
 def add_parsers(sub) -> None:
-    """Register ``ngnav evaluate`` and ``ngnav consistency``."""
+    """Register ``ngnav evaluate``, ``ngnav consistency`` and ``ngnav faults``."""
     p = sub.add_parser(
         "evaluate", help="errors of GM(1,1)/none/oracle/array-alone/GPS-alone on a simulated flight"
     )
@@ -232,3 +290,32 @@ def add_parsers(sub) -> None:
         "--save", metavar="DIR", help="also write each run's NEES and NIS series as it arrives"
     )
     p.set_defaults(func=cmd_consistency)
+
+    p = sub.add_parser(
+        "faults",
+        help="channel-fault trials: detection and isolation latency, and fault-free alarms",
+    )
+    add_flight_args(p)
+    p.add_argument("--runs", type=int, default=9, help="trials per kind (default: %(default)s)")
+    p.add_argument(
+        "--kinds",
+        metavar="K1,K2",
+        help="kinds to inject (default: dead,stuck,drift,noisy,saturated)",
+    )
+    p.add_argument(
+        "--clean-runs", type=int, default=0, help="fault-free flights for false alarms (default: 0)"
+    )
+    p.add_argument(
+        "--drift",
+        type=float,
+        default=0.00980665,
+        metavar="MPS2_PER_S",
+        help="the drift's rate, m/s^2 per s (default: 1 milli-g per second)",
+    )
+    p.add_argument(
+        "--watch", type=float, default=10.0, metavar="S", help="seconds watched after the fault"
+    )
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--scheduler", metavar="tcp://HOST:8786")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_faults)

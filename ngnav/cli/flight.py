@@ -180,6 +180,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"run {src}: {res.estimates.t_s.shape[0]} estimates ({res.compensation}) -> {out}")
     _print_reports(reports)
     _print_counts(res.counts)
+    for ev in res.faults:
+        print(f"  channel fault: {ev.describe()}")
     if res.smoothed is not None:
         print(f"  smoothed -> {smoothed_path(out)} (and .npz)")
     elif args.smooth and failure:

@@ -30,6 +30,7 @@ from ngnav.config import (
     build_section,
     read_scenario_data,
 )
+from ngnav.layout import layout_by_name
 from ngnav.settings import (
     CompensationSettings,
     FilterSettings,
@@ -37,6 +38,7 @@ from ngnav.settings import (
     VehicleSettings,
     migrate_legacy,
 )
+from ngnav.sim.faults import ChannelFault, parse_faults
 from ngnav.sim.flight import FlightPlan, LiftLaw, Profile, Transition
 from ngnav.sim.sensors import PRESET_NAMES, AccelerometerSpec, sensor_preset
 
@@ -144,6 +146,8 @@ class FlightScenario:
     lift: LiftLaw | None = None
     #: 1-sigma of one aircraft's (alpha0 rad, K m) about the type's law, or None.
     lift_scatter: tuple[float, float] | None = None
+    #: Channel faults the simulator injects (``[faults]``; :mod:`ngnav.sim.faults`).
+    faults: tuple[ChannelFault, ...] = ()
 
     def plan(self) -> FlightPlan:
         """The flight's bank, pitch, speed, yaw-rate and angle-of-attack profiles."""
@@ -222,10 +226,10 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
     """Load a flight scenario (shipped name or path), applying ``section.key=value`` overrides."""
     data, source = read_scenario_data(name_or_path)
     data = migrate_legacy(data, source)
-    for section in _OPTIONAL_SECTIONS:
+    for section in (*_OPTIONAL_SECTIONS, "faults"):
         data.setdefault(section, {})
     data = apply_overrides(data, overrides or [], source)
-    known = set(_SECTIONS) | set(_OPTIONAL_SECTIONS) | {"flight"}
+    known = set(_SECTIONS) | set(_OPTIONAL_SECTIONS) | {"flight", "faults"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise ValueError(f"{source}: unknown section [{unknown[0]}]")
@@ -284,8 +288,22 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
             raise ValueError(f"{source}: flight.lift_scatter: expected numbers >= 0")
         scatter = (float(np.deg2rad(vals[0])), float(vals[1]))
     parts["sensor"].spec()  # validate the preset now, naming the file
+    faults = parse_faults(data["faults"], source)
+    n_channels = layout_by_name(parts["array"].layout, parts["array"].lever_arm_m).n_sensors
+    for f in faults:
+        if f.channel > n_channels:
+            raise ValueError(
+                f"{source}: a fault on channel {f.channel}: the {parts['array'].layout} has "
+                f"{n_channels} channels"
+            )
     return FlightScenario(
-        name=source, legs=legs, **start_values, lift=lift, lift_scatter=scatter, **parts
+        name=source,
+        legs=legs,
+        **start_values,
+        lift=lift,
+        lift_scatter=scatter,
+        faults=faults,
+        **parts,
     )
 
 

@@ -25,6 +25,7 @@ from ngnav.paper import draw_mounting_errors
 from ngnav.records import ArraySamples, FlightTruth, GpsFixes
 from ngnav.rotation import euler_from_quat
 from ngnav.runconfig import InitialSettings, RunConfig
+from ngnav.sim.faults import ChannelFault, inject_faults
 from ngnav.sim.flight import fly
 from ngnav.sim.flight_scenario import FlightScenario
 from ngnav.sim.gps import GpsReceiverModel
@@ -52,6 +53,8 @@ class SimulatedRun:
         The real mounting errors (for the oracle geometry).
     true_scale : array (N,)
         Real over nominal sensitivity.
+    faults : tuple of ChannelFault
+        The channel faults injected (the scenario's ``[faults]``).
     """
 
     truth: FlightTruth
@@ -63,6 +66,7 @@ class SimulatedRun:
     config: RunConfig
     true_errors: MountingErrors
     true_scale: np.ndarray
+    faults: tuple[ChannelFault, ...] = ()
 
     def true_layout(self) -> ArrayLayout:
         """The array as really built."""
@@ -172,6 +176,16 @@ def simulate_flight(
     done(0.5)
     clean = real.outputs(truth.omega_dot_b_rps2, truth.f_b_mps2, truth.omega_b_rps)
     out, saturated, bias = spec.simulate(clean, rate, scale_error, rng)
+    if scn.faults:
+        # their own stream: the run's other draws stay those of the healthy run
+        out = inject_faults(
+            truth.t_s,
+            out,
+            scn.faults,
+            spec.sample_sigma_mps2(rate),
+            spec.range_g * G0_MPS2,
+            np.random.default_rng([scn.run.seed, run_index, 1]),
+        )
     done(0.8)
     samples = ArraySamples(truth.t_s, out)
 
@@ -233,5 +247,14 @@ def simulate_flight(
         rest=scn.rest,
     )
     return SimulatedRun(
-        truth, samples, saturated, bias, fixes, glitched, config, true_errors, 1.0 + scale_error
+        truth,
+        samples,
+        saturated,
+        bias,
+        fixes,
+        glitched,
+        config,
+        true_errors,
+        1.0 + scale_error,
+        scn.faults,
     )

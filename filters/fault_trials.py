@@ -1,0 +1,229 @@
+"""Fault trials: simulated flights with one injected channel fault, and what the tests found.
+
+``ngnav faults`` runs them (:func:`fault_trial` per run, on the campaign's workers): for
+each kind of fault, on each channel in turn (run ``i`` takes channel ``i mod N + 1``),
+starting at a time drawn per run inside the flight's ``[start_from_s, start_to_s]``; and
+fault-free runs for the false alarms. Each trial reports the latency of detection and
+isolation, whether the channel named was the one injected, and for a drift the attitude
+error at detection over its 1-sigma (the drift must be found before it costs the
+attitude more than its 3 sigma).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+from filters.state import ATT
+from ngnav.errors import CovarianceError
+from ngnav.sim.faults import ChannelFault
+
+
+@dataclass(frozen=True)
+class TrialOutcome:
+    """One trial's result (times in s from the fault's start; NaN when it did not happen).
+
+    Attributes
+    ----------
+    run : int
+    fault : ChannelFault or None
+        The fault injected (None for a fault-free run).
+    detected_s, isolated_s : float
+        Latency of the first event that names or includes the channel, and of its
+        isolation.
+    named : tuple of int
+        The channels that event named (empty when nothing was found).
+    kind : str
+        The kind the event gave ("" when nothing was found).
+    false_alarms : int
+        Events on other channels, and before the fault's start.
+    attitude_sigmas : float
+        For a drift: the largest attitude error over its 1-sigma, per axis, at detection.
+    flight_s : float
+        The flight time the tests watched, s.
+    failure : str
+        How the run stopped early ("" when it ran to its end).
+    """
+
+    run: int
+    fault: ChannelFault | None
+    detected_s: float
+    isolated_s: float
+    named: tuple[int, ...]
+    kind: str
+    false_alarms: int
+    attitude_sigmas: float
+    flight_s: float
+    failure: str = ""
+
+
+def trial_fault(
+    kind: str, run: int, n_channels: int, start_from_s: float, start_to_s: float, size: float
+) -> ChannelFault:
+    """Run ``run``'s fault: channel ``run mod N + 1``, its start drawn for the run alone."""
+    start = start_from_s + (start_to_s - start_from_s) * np.random.default_rng([7, run]).random()
+    return ChannelFault(run % n_channels + 1, kind, float(round(start, 3)), size)
+
+
+def fault_trial(scn, run: int, fault: ChannelFault | None, watch_s: float) -> TrialOutcome:
+    """Simulate run ``run`` of ``scn`` with ``fault`` and watch the tests for ``watch_s``
+    after it (the whole flight without a fault)."""
+    from filters.evaluate import run_errors
+    from filters.pipeline import run_filter
+    from ngnav.sim.simulate import simulate_flight
+
+    scn = replace(scn, faults=() if fault is None else (fault,))
+    sim = simulate_flight(scn, run)
+    samples, truth, fixes = sim.samples, sim.truth, sim.fixes
+    if fault is not None:
+        end = truth.t_s[0] + fault.start_s + watch_s
+        keep = truth.t_s <= end
+        samples = replace(samples, t_s=samples.t_s[keep], accel_mps2=samples.accel_mps2[keep])
+        truth = type(truth)(*(getattr(truth, f.name)[keep] for f in fields(truth)))
+        fixes = fixes.select(fixes.t_s <= end)
+    failure = ""
+    try:
+        res = run_filter(samples, fixes, sim.config, truth=truth)
+    except CovarianceError as exc:
+        res = getattr(exc, "partial", None)
+        failure = str(exc).splitlines()[0]
+        if res is None:
+            return TrialOutcome(run, fault, np.nan, np.nan, (), "", 0, np.nan, 0.0, failure)
+    t0 = float(samples.t_s[0])
+    flight_s = float(res.estimates.t_s[-1] - res.estimates.t_s[0])
+    hit = None
+    false_alarms = 0
+    for ev in res.faults:
+        if fault is not None and fault.channel in ev.channels and hit is None:
+            if ev.detected_at_s >= t0 + fault.start_s - 1e-9:
+                hit = ev
+                continue
+        false_alarms += 1
+    if hit is None:
+        nothing = (np.nan, np.nan, (), "", false_alarms, np.nan, flight_s, failure)
+        return TrialOutcome(run, fault, *nothing)
+    # latencies from the first faulted sample
+    start = float(samples.t_s[np.searchsorted(samples.t_s, t0 + fault.start_s - 1e-12)])
+    sig = np.nan
+    if fault.kind == "drift":
+        est = res.estimates
+        j = min(int(np.searchsorted(est.t_s, hit.detected_at_s)), est.t_s.shape[0] - 1)
+        err = run_errors(est, truth).att_ned_rad[j]
+        sd = np.sqrt(np.diag(est.cov_nav[j][ATT, ATT]))
+        sig = float(np.max(np.abs(err) / sd))
+    return TrialOutcome(
+        run,
+        fault,
+        float(hit.detected_at_s - start),
+        float(hit.isolated_at_s - start),
+        hit.channels,
+        hit.kind,
+        false_alarms,
+        sig,
+        flight_s,
+        failure,
+    )
+
+
+#: The drift ``ngnav faults`` injects by default, m/s^2 per s (1 milli-g per second).
+DEFAULT_DRIFT_MPS2_PER_S = 0.00980665
+#: The other kinds' default sizes (``dead`` and ``stuck`` take none).
+DEFAULT_SIZES = {"dead": 0.0, "stuck": 0.0, "noisy": 10.0, "saturated": 1.0}
+
+
+def _task(scn, tasks: list, watch_s: float, index: int) -> TrialOutcome:
+    _kind, run, fault = tasks[index]
+    return fault_trial(scn, run, fault, watch_s)
+
+
+def fault_campaign(
+    scn,
+    kinds: tuple[str, ...],
+    runs: int,
+    clean_runs: int,
+    *,
+    drift_mps2_per_s: float = DEFAULT_DRIFT_MPS2_PER_S,
+    watch_s: float = 10.0,
+    workers: int = 2,
+    scheduler: str | None = None,
+    progress: bool = False,
+) -> dict:
+    """Trials of every kind (``runs`` each, channels in turn) and ``clean_runs`` fault-free
+    flights; the summary :func:`summarise_trials` gives."""
+    from functools import partial
+
+    from ngnav.campaign import run_campaign
+    from ngnav.layout import layout_by_name
+
+    n = layout_by_name(scn.array.layout, scn.array.lever_arm_m).n_sensors
+    duration = scn.plan().duration_s
+    start_from, start_to = min(15.0, duration / 4), duration - watch_s - 1.0
+    if start_to <= start_from:
+        raise ValueError(f"the flight ({duration:g} s) is too short to watch {watch_s:g} s")
+    tasks: list[tuple[str, int, ChannelFault | None]] = []
+    for kind in kinds:
+        size = drift_mps2_per_s if kind == "drift" else DEFAULT_SIZES[kind]
+        for run in range(runs):
+            tasks.append((kind, run, trial_fault(kind, run, n, start_from, start_to, size)))
+    tasks += [("none", run, None) for run in range(clean_runs)]
+    results: dict[int, TrialOutcome] = {}
+    failures = run_campaign(
+        partial(_task, scn, tasks, watch_s),
+        range(len(tasks)),
+        results.__setitem__,
+        workers=workers,
+        scheduler=scheduler,
+        progress=progress,
+        desc="trials",
+    )
+    if failures:
+        raise RuntimeError(f"{len(failures)} trials raised; first: {failures[0].error}")
+    out = summarise_trials([results[i] for i in range(len(tasks))], kinds)
+    out.update(scenario=scn.name, runs=runs, clean_runs=clean_runs, watch_s=watch_s)
+    out["drift_mps2_per_s"] = drift_mps2_per_s
+    return out
+
+
+def _stats(x: list[float]) -> dict:
+    a = np.array([v for v in x if np.isfinite(v)])
+    if a.size == 0:
+        return {"n": 0, "median": None, "worst": None}
+    return {"n": int(a.size), "median": float(np.median(a)), "worst": float(np.max(a))}
+
+
+def summarise_trials(trials: list[TrialOutcome], kinds: tuple[str, ...]) -> dict:
+    """Per kind: trials, detected, named right, isolated, latencies (s; median and worst),
+    the drift's attitude sigmas at detection; fault-free: flight hours and alarms."""
+    out: dict = {"kinds": {}}
+    for kind in kinds:
+        tr = [t for t in trials if t.fault is not None and t.fault.kind == kind]
+        det = [t for t in tr if np.isfinite(t.detected_s)]
+        row = {
+            "trials": len(tr),
+            "detected": len(det),
+            "isolated_right": sum(
+                1 for t in det if np.isfinite(t.isolated_s) and t.named == (t.fault.channel,)
+            ),
+            "not_isolable": sum(
+                1 for t in det if len(t.named) > 1 and not np.isfinite(t.isolated_s)
+            ),
+            "kind_right": sum(1 for t in det if t.kind == kind),
+            "detection_s": _stats([t.detected_s for t in det]),
+            "isolation_s": _stats([t.isolated_s for t in det]),
+            "other_alarms": sum(t.false_alarms for t in tr),
+            "stopped": sum(1 for t in tr if t.failure),
+        }
+        if kind == "drift":
+            sig = [t.attitude_sigmas for t in det]
+            row["attitude_sigmas_at_detection"] = _stats(sig)
+            row["within_3_sigma"] = sum(1 for s in sig if s <= 3.0)
+        out["kinds"][kind] = row
+    clean = [t for t in trials if t.fault is None]
+    out["fault_free"] = {
+        "flights": len(clean),
+        "flight_hours": sum(t.flight_s for t in clean) / 3600.0,
+        "alarms": sum(t.false_alarms for t in clean),
+        "stopped": sum(1 for t in clean if t.failure),
+    }
+    return out

@@ -1,0 +1,227 @@
+"""Channel faults: injected by the simulator, found by the health tests (filters.faults)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from filters.faults import (
+    _CHI2_1_MEDIAN,
+    FLAT_RUN,
+    NOISE_WINDOW,
+    NOISY_RATIO,
+    ChannelMonitor,
+    signature_groups,
+)
+from ngnav.frontend import ArraySolver
+from ngnav.layout import nine_accelerometer_cube, six_accelerometer_cube
+from ngnav.sim.faults import ChannelFault, inject_faults, parse_faults
+from ngnav.sim.flight_scenario import load_flight
+
+SIGMA = 0.005  # m/s^2 per sample, about mems-tactical at 1 kHz
+LSB = 7.7e-5  # its 20-bit step over +-4.096 g
+RANGE = 40.17
+
+
+def _noise(rng, k, n=9, lsb=LSB):
+    return np.round(rng.normal(0.0, SIGMA, (k, n)) / lsb) * lsb
+
+
+def _monitor(n=9):
+    return ChannelMonitor(np.full(n, SIGMA), RANGE, np.zeros((3, n)))
+
+
+def _feed(m, t, a, chunk):
+    for i in range(0, t.shape[0], chunk):
+        m.observe_samples(t[i : i + chunk], a[i : i + chunk])
+
+
+# ----------------------------------------------------------------- injection
+def test_each_kind_changes_its_channel_from_its_start_and_nothing_else():
+    rng = np.random.default_rng(1)
+    t = np.arange(1000) * 1e-3
+    a = rng.normal(0.0, SIGMA, (1000, 9)) + 3.0
+    faults = (
+        ChannelFault(1, "dead", 0.5),
+        ChannelFault(2, "stuck", 0.5),
+        ChannelFault(3, "drift", 0.5, 0.2),
+        ChannelFault(4, "noisy", 0.5, 10.0),
+        ChannelFault(5, "saturated", 0.5, -1.0),
+    )
+    out = inject_faults(t, a, faults, SIGMA, RANGE, np.random.default_rng(2))
+    on = slice(500, None)
+    np.testing.assert_array_equal(out[:500], a[:500])
+    np.testing.assert_array_equal(out[:, 5:], a[:, 5:])
+    assert np.all(out[on, 0] == 0.0)
+    assert np.all(out[on, 1] == a[500, 1])
+    np.testing.assert_allclose(out[on, 2] - a[on, 2], 0.2 * (t[on] - t[500]), atol=1e-12)
+    extra = out[on, 3] - a[on, 3]
+    assert np.std(extra) == pytest.approx(SIGMA * np.sqrt(99.0), rel=0.1)
+    assert np.all(out[on, 4] == -RANGE)
+
+
+def test_a_scenario_faults_section_is_parsed_and_checked():
+    scn = load_flight(
+        "tactical", ['faults.inject=[{channel=6, kind="drift", start_s=20.0, size=0.01}]']
+    )
+    assert scn.faults == (ChannelFault(6, "drift", 20.0, 0.01),)
+    assert load_flight("tactical").faults == ()
+    for table, msg in (
+        ({"inject": [{"channel": 6, "kind": "melted", "start_s": 1.0}]}, "melted"),
+        ({"inject": [{"channel": 0, "kind": "dead", "start_s": 1.0}]}, "channel"),
+        ({"inject": [{"channel": 2, "kind": "drift", "start_s": 1.0}]}, "finite size"),
+        ({"inject": [{"channel": 2, "kind": "noisy", "start_s": 1.0, "size": 0.5}]}, "> 1"),
+        ({"inject": [{"kind": "dead", "start_s": 1.0}]}, "missing key channel"),
+        ({"inject": [{"channel": 2, "kind": "dead", "start_s": 1.0, "when": 2}]}, "when"),
+        ({"list": []}, "faults.list"),
+    ):
+        with pytest.raises(ValueError, match=msg):
+            parse_faults(table, "x.toml")
+    with pytest.raises(ValueError, match="has 9 channels"):
+        load_flight("tactical", ['faults.inject=[{channel=10, kind="dead", start_s=1.0}]'])
+
+
+# ----------------------------------------------------------------- sample tests
+@pytest.mark.parametrize("chunk", [1, 7, 1000])
+def test_flat_lines_are_found_after_their_run_whatever_the_chunks(chunk):
+    rng = np.random.default_rng(3)
+    k = 3000
+    t = np.arange(k) * 1e-3
+    a = _noise(rng, k)
+    a[1000:, 1] = 0.0
+    a[1500:, 4] = a[1500, 4] + 0.123  # a value no noise sample has
+    a[2000:, 8] = RANGE
+    m = _monitor()
+    _feed(m, t, a, chunk)
+    got = {(e.channels, e.kind): (e.detected_at_s, e.isolated_at_s) for e in m.events}
+    # the run holds FLAT_RUN equal readings: the alarm is at its last
+    assert got[((2,), "dead")] == pytest.approx((t[1000 + FLAT_RUN - 1],) * 2)
+    assert got[((5,), "stuck")] == pytest.approx((t[1500 + FLAT_RUN - 1],) * 2)
+    # the jump to the rail trips the noise test first; the flat line then names it
+    assert ((9,), "saturated") in got
+    assert len(m.events) == 3
+    assert m.faulty_mask == (1 << 1) | (1 << 4) | (1 << 8)
+
+
+def test_a_channel_that_moves_again_leaves_the_mask_but_keeps_its_event():
+    rng = np.random.default_rng(4)
+    t = np.arange(2000) * 1e-3
+    a = _noise(rng, 2000)
+    a[500:600, 2] = 1.0
+    m = _monitor()
+    _feed(m, t[:550], a[:550], 10)
+    assert m.faulty_mask == 1 << 2
+    _feed(m, t[550:], a[550:], 10)
+    assert m.faulty_mask == 0
+    assert [(e.channels, e.kind) for e in m.events] == [((3,), "stuck")]
+
+
+def test_a_noisy_channel_is_named_within_two_windows():
+    rng = np.random.default_rng(5)
+    k = 5 * NOISE_WINDOW
+    t = np.arange(k) * 1e-3
+    a = _noise(rng, k)
+    start = 2 * NOISE_WINDOW + 37
+    a[start:, 6] += rng.normal(0.0, SIGMA * np.sqrt(99.0), k - start)
+    m = _monitor()
+    _feed(m, t, a, 13)
+    (ev,) = m.events
+    assert ev.channels == (7,) and ev.kind == "noisy"
+    assert t[start] < ev.detected_at_s <= t[start] + 2 * NOISE_WINDOW * 1e-3
+
+
+@pytest.mark.parametrize("lsb", [LSB, SIGMA])
+def test_white_noise_stays_far_below_the_noisy_threshold(lsb):
+    """200,000 windows of white noise at the configured sigma (quantised at the 20-bit
+    step, and at a step as large as the noise): the largest ratio is under half the
+    threshold, and no flat line."""
+    rng = np.random.default_rng(6)
+    worst = 0.0
+    for _ in range(20):
+        x = _noise(rng, NOISE_WINDOW * 10_000 + 2, n=1, lsb=lsb)[:, 0]
+        d2 = x[2:] - 2 * x[1:-1] + x[:-2]
+        sq = (d2 * d2).reshape(-1, NOISE_WINDOW)
+        worst = max(worst, float(np.max(np.median(sq, axis=1))))
+        same = np.flatnonzero(np.diff(x) != 0.0)
+        assert np.max(np.diff(same)) < FLAT_RUN
+    assert worst / (6 * SIGMA**2 * _CHI2_1_MEDIAN) < NOISY_RATIO / 2
+
+
+# ----------------------------------------------------------------- parity
+def test_the_nine_cube_parity_groups_are_its_angular_acceleration_pairs():
+    """With the rate known, A2/A5 alone carry wdot_z, A3/A8 wdot_y, A6/A9 wdot_x (paper
+    eq. 26): an offset on either of a pair moves the parity the same way."""
+    s = ArraySolver(nine_accelerometer_cube(0.1)).solve_matrix
+    assert signature_groups(s[6:]) == [(0,), (1, 4), (2, 7), (3,), (5, 8), (6,)]
+    six = ArraySolver(six_accelerometer_cube(0.1), 1.0)
+    assert six.solve_matrix.shape[0] == 6  # no rate rows: nothing to group
+    assert signature_groups(np.zeros((0, 6))) == []
+
+
+def test_a_parity_offset_is_found_on_its_group_and_named_when_alone():
+    s = ArraySolver(nine_accelerometer_cube(0.1)).solve_matrix[6:]
+    cov = np.eye(3) * 0.02**2
+    rng = np.random.default_rng(7)
+    for channel, named in ((1, (1,)), (9, (6, 9))):
+        m = ChannelMonitor(np.full(9, SIGMA), RANGE, s)
+        d = np.zeros(9)
+        for k in range(400):
+            r = rng.normal(0.0, 0.02, 3)
+            if k >= 200:
+                d[channel - 1] = 0.01  # m/s^2: half a sigma of the innovation per block
+                r = r + s @ d
+            m.observe_parity(k * 0.01, r, cov)
+        (ev,) = m.events
+        assert ev.channels == named and ev.kind == "drift"
+        assert 2.0 < ev.detected_at_s < 3.0
+        assert ev.isolated == (len(named) == 1)
+
+
+def test_unbiased_innovations_raise_no_parity_alarm():
+    s = ArraySolver(nine_accelerometer_cube(0.1)).solve_matrix[6:]
+    rng = np.random.default_rng(8)
+    cov = np.array([[2.0, 0.5, 0.0], [0.5, 1.0, 0.2], [0.0, 0.2, 1.5]]) * 1e-4
+    m = ChannelMonitor(np.full(9, SIGMA), RANGE, s)
+    chol = np.linalg.cholesky(cov)
+    for k in range(100_000):
+        m.observe_parity(k * 0.01, chol @ rng.normal(size=3), cov)
+    assert m.events == []
+    assert np.max(m._cusum) < 15.0
+
+
+# ----------------------------------------------------------------- the CLI
+def test_a_simulated_fault_is_reported_in_the_summary_and_estimates(tmp_path):
+    """ngnav simulate with [faults], then ngnav run: the summary names the channel, its
+    kind and times, and estimates.csv's faulty_channels marks it from then on."""
+    from filters.output import read_estimates_csv
+    from tests.helpers import run_cli
+
+    d = tmp_path / "run"
+    fault = 'faults.inject=[{channel=4, kind="saturated", start_s=20.0}]'
+    run_cli("simulate", "--scenario", "tactical", "--set", "run.rate_hz=200", "--set", fault,
+            "--out", str(d))  # fmt: skip
+    out = run_cli("run", str(d)).stdout
+    assert "channel faults found 1" in out
+    assert "channel fault: channel 4 saturated: detected 20.120 s, isolated 20.120 s" in out
+    est = read_estimates_csv(d / "estimates.csv")
+    after = est.t_s >= 20.125
+    assert np.all(est.faulty_channels[after] == 1 << 3)
+    assert np.all(est.faulty_channels[est.t_s < 20.0] == 0)
+
+
+def test_the_faults_command_reports_latencies_as_json():
+    import json
+
+    from tests.helpers import run_cli
+
+    args = ["faults", "--scenario", "tactical", "--set", "run.rate_hz=200", "--runs", "2",
+            "--kinds", "stuck,noisy", "--clean-runs", "1", "--workers", "1", "--json"]  # fmt: skip
+    out = json.loads(run_cli(*args).stdout)
+    stuck = out["kinds"]["stuck"]
+    # 25 equal readings at 200 Hz: the 25th comes 120 ms after the first
+    assert stuck["detected"] == stuck["isolated_right"] == stuck["kind_right"] == 2
+    assert stuck["detection_s"]["worst"] == pytest.approx(0.120, abs=1e-6)
+    assert out["kinds"]["noisy"]["isolated_right"] == 2
+    assert out["fault_free"]["flights"] == 1 and out["fault_free"]["alarms"] == 0
+    bad = run_cli("faults", "--kinds", "melted", check=False)
+    assert bad.returncode == 2 and "melted" in bad.stderr
