@@ -60,6 +60,7 @@ class AlignmentMixin:
         # before the start nothing is dropped (base 0); channels isolated already are out
         sa = self._features(0, self._n, self._excluded, w0)
         invalid = (self._chmask[: self._n] & ~self._excluded) != 0
+        self._count_held(0, i_start + 1, self._excluded)  # the blocks count the rest
         t = self._t[: self._n]
         se = self._se
         dt = self.dt

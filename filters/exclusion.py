@@ -42,10 +42,7 @@ class ExclusionMixin:
         first = int(np.searchsorted(self._t[:used], onset_s - 1e-9))
         if self.started:
             first = max(first, self._i0 + 1 - self._base)  # what the filter has used stays
-        rows = slice(first, used)
-        self._count_held(self._nfmask[rows], self._chmask[rows], self._excl[rows], -1)
-        self._excl[rows] |= bit
-        self._count_held(self._nfmask[rows], self._chmask[rows], self._excl[rows], 1)
+        self._excl[first:used] |= bit
 
     def _reduced_for(self, mask: int):
         """The reduced solve of ``mask`` (cached), or None when it cannot be solved."""
@@ -113,7 +110,7 @@ class ExclusionMixin:
         self._se = se
         self._solved = new.copy()
         self._filter_mask = mask
-        self.monitor.set_signatures(s_new[6:][nq_rows])
+        self.monitor.set_signatures(s_new[6:][nq_rows] * self._parity_on)
 
 
 #: A suspect channel's offset walk while the parity names its group but not the

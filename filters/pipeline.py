@@ -199,7 +199,9 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsM
         self._k = cols.shape[0]
         # sample store: global index g lives at row g - base
         self._t = np.empty(0)
+        self._raw = np.empty((0, self.n_channels))  # the channels as they came, m/s^2
         self._ach = np.empty((0, self.n_channels))  # calibrated channels, m/s^2
+        self._mon_n = 0  # samples the health tests have seen (global count)
         self._nfmask = np.empty(0, dtype=np.int64)  # bit i: channel i non-finite
         self._chmask = np.empty(0, dtype=np.int64)  # bit i: channel i non-finite or saturated
         self._excl = np.empty(0, dtype=np.int64)  # bit i: channel i excluded at the sample
@@ -212,7 +214,12 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsM
         self._suspects = None  # a parity group being told apart (SuspectsMixin)
         self._bits = 1 << np.arange(self.n_channels, dtype=np.int64)
         #: The channels' health tests (flat line, noise level, parity; :mod:`filters.faults`).
-        self.monitor = ChannelMonitor(cfg.noise_sigma_mps2, cfg.range_mps2, self._smat[cols >= 6])
+        #: Without compensation the known mounting errors alone move the parity: no parity
+        #: test then (the sample tests still run).
+        self._parity_on = method != "none"
+        self.monitor = ChannelMonitor(
+            cfg.noise_sigma_mps2, cfg.range_mps2, self._smat[cols >= 6] * self._parity_on
+        )
         self._base = 0
         self._n = 0  # samples received (global count)
         self._fixes: list[tuple] = []  # (t, ned(3), vel(3), sig(3), vel_acc, arrival order)

@@ -52,7 +52,7 @@ class StepMixin:
             self._switch_solve(excluded)
             se = self._se
         xs = self._features(i0 + 1, i1 + 1, excluded, nf.w)
-        bad = (self._chmask[i0 + 1 - b : i1 + 1 - b] & ~excluded) != 0
+        bad = self._count_held(i0 + 1, i1 + 1, excluded)
         kk = xs.shape[0]
         window = self._window
         e = self._e + 1
@@ -162,13 +162,15 @@ class StepMixin:
                 self._rate_nis_t.append(nf.t_s)
             if p_bound is not None and nis is not None and nis <= nf.gate_q:
                 _, hb = nf.rate_model(truth.omega_b_rps[i0 + 1 : i1 + 1], sg_true)
+                rows = nf.rate_rows  # the products still solved (channels excluded)
+                cross = nf.rate_noise_cross(kk, dt, c_true[i0], held)
                 _, p_bound = update_correlated(
                     np.zeros(nf.layout.n),
                     p_bound,
-                    np.zeros(nq),
-                    self.noise.feature_cov[6:, 6:] / n_ok,
-                    hb,
-                    nf.rate_noise_cross(kk, dt, c_true[i0], held),
+                    np.zeros(int(rows.sum())),
+                    nf.noise.feature_cov[6:, 6:][np.ix_(rows, rows)] / n_ok,
+                    hb[rows],
+                    None if cross is None else cross[:, rows],
                 )
         if row == self._hist.shape[0]:
             # a sliding window: keep the rows the next forecasts read

@@ -35,8 +35,6 @@ class StreamMixin:
         with np.errstate(invalid="ignore"):
             bad_ch = nonfinite | (np.abs(raw) >= cfg.range_mps2 * (1 - 1e-9))
         nf_bits, bad_bits = nonfinite @ self._bits, bad_ch @ self._bits
-        self.monitor.observe_samples(t_s, raw)  # ahead of the filter by the fusion lag
-        self._count_held(nf_bits, bad_bits, self._excluded, 1)
         # a bad channel reads its offset (zero once calibrated): a row held whole then
         # holds no NaN, and a row whose bad channel is excluded keeps its good ones
         a = (np.where(bad_ch, cfg.offset_mps2, raw) - cfg.offset_mps2) / cfg.scale
@@ -46,9 +44,7 @@ class StreamMixin:
             g = slice(self._n, self._n + t_s.shape[0])
             phi = kinematic_features(tr.omega_dot_b_rps2[g], tr.f_b_mps2[g], tr.omega_b_rps[g])
             a -= phi @ self._d_true.T
-        self._append(t_s, a, nf_bits, bad_bits)
-        for channel, onset_s in self.monitor.take_isolations():
-            self._exclude_from(channel, onset_s)
+        self._append(t_s, raw, a, nf_bits, bad_bits)
         return self._advance()
 
     def push_fix(
@@ -180,6 +176,7 @@ class StreamMixin:
         if not final and self._n - 1 < i_start + lag_n:
             return False  # an earlier fix may still arrive within the lag
         self._t0 = t0
+        self._monitor_to(min(i_start + lag_n, self._n - 1) + 1)
         self._start(i_start, first)
         rest = [f for f in self._fixes if f is not first]
         self._fixes = []
@@ -204,17 +201,36 @@ class StreamMixin:
                 i1 = min(i1, last)
             elif i1 + lag_n > last:
                 break
+            self._monitor_to(min(i1 + lag_n, last) + 1)
             self._block(i1)
 
-    def _count_held(self, nf_bits, bad_bits, excluded, sign: int) -> None:
-        """Count (sign +1) or uncount (-1) the rows held for a bad channel not excluded:
-        non-finite when one of those is non-finite, else saturated."""
-        bad = (bad_bits & ~excluded) != 0
-        nonfinite = (nf_bits & ~excluded) != 0
-        self.counts["samples held (non-finite)"] += sign * int(np.count_nonzero(nonfinite))
-        self.counts["samples held (saturated)"] += sign * int(np.count_nonzero(bad & ~nonfinite))
+    def _count_held(self, g0: int, g1: int, excluded: int) -> np.ndarray:
+        """Count rows ``g0 .. g1 - 1`` (global) held for a bad channel not in ``excluded``
+        (non-finite when one of those is, else saturated); returns the held rows (bool)."""
+        b = self._base
+        bad = (self._chmask[g0 - b : g1 - b] & ~excluded) != 0
+        nonfinite = (self._nfmask[g0 - b : g1 - b] & ~excluded) != 0
+        self.counts["samples held (non-finite)"] += int(np.count_nonzero(nonfinite))
+        self.counts["samples held (saturated)"] += int(np.count_nonzero(bad & ~nonfinite))
+        return bad
 
-    def _append(self, t_s, a, nf_bits, bad_bits) -> None:
+    def _monitor_to(self, g_end: int) -> None:
+        """Run the channels' health tests up to sample ``g_end`` (global, exclusive).
+
+        They run a fusion lag ahead of the blocks, on what has arrived by then whatever the
+        chunking (so a live link and a replay find the same faults at the same samples), and
+        an isolated channel is excluded from its fault's onset where the blocks have not
+        used it yet."""
+        if g_end <= self._mon_n:
+            return
+        b = self._base
+        rows = slice(self._mon_n - b, g_end - b)
+        self.monitor.observe_samples(self._t[rows], self._raw[rows])
+        self._mon_n = g_end
+        for channel, onset_s in self.monitor.take_isolations():
+            self._exclude_from(channel, onset_s)
+
+    def _append(self, t_s, raw, a, nf_bits, bad_bits) -> None:
         """Append rows to the sample store (amortised growth; processed rows dropped)."""
         m = t_s.shape[0]
         used = self._n - self._base
@@ -223,7 +239,7 @@ class StreamMixin:
             drop = max(0, self._i0 - self._base) if self.started else 0
             keep = slice(drop, used)
             cap = max(4096, 2 * (used - drop + m))
-            for name in ("_t", "_ach", "_nfmask", "_chmask", "_excl"):
+            for name in ("_t", "_raw", "_ach", "_nfmask", "_chmask", "_excl"):
                 old = getattr(self, name)
                 new = np.empty((cap, *old.shape[1:]), dtype=old.dtype)
                 new[: used - drop] = old[keep]
@@ -232,6 +248,7 @@ class StreamMixin:
             used -= drop
         r = slice(used, used + m)
         self._t[r] = t_s
+        self._raw[r] = raw
         self._ach[r] = a
         self._nfmask[r] = nf_bits
         self._chmask[r] = bad_bits

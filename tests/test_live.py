@@ -27,7 +27,9 @@ from telemetry.tlog import read_tlog
 
 ROOT = Path(__file__).resolve().parents[1]
 NGNAV = [sys.executable, "-m", "ngnav.cli"]
-SCENARIO = ["--scenario", "tactical", "--set", "run.rate_hz=200"]
+#: Channel 6 dies at 30 s: found, excluded and reported live as in the replay.
+DEAD = 'faults.inject=[{channel=6, kind="dead", start_s=30.0}]'
+SCENARIO = ["--scenario", "tactical", "--set", "run.rate_hz=200", "--set", DEAD]
 #: Messages whose content follows the wall clock on a live link.
 WALL_CLOCK = {"SYSTEM_TIME", "HEARTBEAT"}
 
@@ -169,6 +171,33 @@ def test_live_link_gives_the_estimates_of_the_tlog_replay(live_run):
     b = _estimate_frames(tmp / "replay.tlog")
     assert len(a) == len(b) > 10000
     assert a == b
+
+
+def test_a_dead_channel_is_reported_live(live_run):
+    """Channel 6 reads 0 from 30 s. The parity sees the first block: A6 or A9 (the pair
+    that alone carries wdot_x) is suspected; 25 equal readings at 200 Hz (120 ms, the tests
+    run the 100 ms fusion lag ahead of the filter) name A6 dead, and it is out from the
+    block at 30.02 s on. The live summary says so, the health message and estimates.csv
+    mark the pair, then A6 alone, and the filter runs on."""
+    tmp, summary, _, _ = live_run
+    assert summary["failure"] is None
+    (ev,) = summary["faults"]
+    assert ev["channels"] == [6] and ev["kind"] == "dead"
+    assert ev["detected_at_s"] == pytest.approx(30.0) and ev["isolated_at_s"] == pytest.approx(
+        30.12
+    )
+    health = [
+        m.to_dict()
+        for _, m in read_tlog(tmp / "live.tlog", FrameDecoder())
+        if m.get_type() == "NGNAV_ARRAY_HEALTH"
+    ]
+    t = np.array([h["time_usec"] for h in health]) * 1e-6
+    bits = np.array([h["faulty_channels"] for h in health])
+    pair = (1 << 5) | (1 << 8)
+    assert np.all(bits[t < 29.995] == 0) and np.all(bits[(t > 29.995) & (t < 30.015)] == pair)
+    assert np.all(bits[t > 30.015] == 1 << 5)
+    live = np.loadtxt(tmp / "live.csv", delimiter=",", skiprows=1)
+    assert np.all(live[live[:, 0] > 30.015, -1] == 1 << 5)
 
 
 def test_common_only_client_sees_every_estimate_frame_of_the_vehicle(live_run):

@@ -108,6 +108,8 @@ def cmd_stream(args: argparse.Namespace) -> int:
         ready=ready,
         busy_poll=args.busy_poll,
     )
+    from dataclasses import asdict
+
     p50, p99, pmax = st.latency_percentiles()
     if args.csv is not None and st.result is not None:
         write_estimates_csv(args.csv, st.result.estimates, st.config)
@@ -120,6 +122,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
         "latency max ms": pmax * 1e3,
         "input": st.counts,
         "filter": {} if st.result is None else st.result.counts,
+        "faults": [] if st.result is None else [asdict(e) for e in st.result.faults],
         "failure": st.failure,
     }
     if args.json:
@@ -134,6 +137,8 @@ def cmd_stream(args: argparse.Namespace) -> int:
         print_counts("frames sent", st.frames_sent)
         if st.result is not None:
             print_counts("filter", st.result.counts)
+            for ev in st.result.faults:
+                print(f"  channel fault: {ev.describe()}")
         if st.failure:
             print(f"  filter stopped: {st.failure}")
     return 0
