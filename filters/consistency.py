@@ -16,6 +16,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import chi2
 
 from filters.evaluate import (
     TARGET_SHARE,
@@ -83,7 +84,7 @@ def one_run(
         "nis_pos": np.where(keep, inn.nis_pos, np.nan),
         "nis_vel": inn.nis_vel,
         "t_fix_s": inn.t_s,
-        "rate_nis": res.rate_nis,
+        "rate_nis": _rate_nis_as_full_dim(res),
         "rate_t_s": res.rate_nis_t_s,
         "rate_dim": res.rate_dim,
         **_rms(errs),
@@ -153,6 +154,20 @@ def finite_mean(x: np.ndarray, axis: int | None = None) -> np.ndarray:
     total = np.where(ok, x, 0.0).sum(axis=axis)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(n > 0, total / np.maximum(n, 1), np.nan)
+
+
+def _rate_nis_as_full_dim(res) -> np.ndarray:
+    """The rate NIS with each value of fewer dof (channels excluded, the aided products out)
+    carried to the full dimension's chi-square by its quantile: consistent values stay
+    chi-square with ``rate_dim`` dof, so one band judges the whole run."""
+    nis = np.asarray(res.rate_nis, dtype=float)
+    dof = res.rate_nis_dof
+    if dof is None or not np.any(dof != res.rate_dim):
+        return nis
+    out = nis.copy()
+    few = dof != res.rate_dim
+    out[few] = chi2.isf(chi2.sf(nis[few], dof[few]), res.rate_dim)
+    return out
 
 
 def _mean_se(run_means: np.ndarray) -> float:

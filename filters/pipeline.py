@@ -255,6 +255,7 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsM
         self._inn: list[tuple] = []
         self._rate_nis: list[float] = []
         self._rate_nis_t: list[float] = []
+        self._rate_nis_dof: list[int] = []
         self.n_fallbacks = 0
         self.smooth = smooth
         self.smoother: SmootherLog | None = None  # made at the start (the state's size)
@@ -375,6 +376,7 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsM
             self.latest,
             smoothed,
             tuple(self.monitor.events),
+            np.array(self._rate_nis_dof, dtype=int),
         )
 
     def _smooth(self) -> tuple[Estimates, int]:

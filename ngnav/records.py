@@ -405,6 +405,8 @@ class RunResult:
     smoothed: Estimates | None = None
     #: The failed channels found (:class:`FaultEvent`), in the order found.
     faults: tuple[FaultEvent, ...] = ()
+    #: Each ``rate_nis`` value's dof (fewer than ``rate_dim`` once channels are excluded).
+    rate_nis_dof: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -225,3 +225,44 @@ def test_the_faults_command_reports_latencies_as_json():
     assert out["fault_free"]["flights"] == 1 and out["fault_free"]["alarms"] == 0
     bad = run_cli("faults", "--kinds", "melted", check=False)
     assert bad.returncode == 2 and "melted" in bad.stderr
+
+
+# ----------------------------------------------------------------- exclusion
+def test_the_reduced_solve_is_exact_without_any_one_channel():
+    """Rigid-body outputs (paper eq. 3) with one channel replaced by garbage: the solve
+    without it, its aided terms from the true rate, gives the true features exactly; without
+    both of a pair (A2, A5: wdot_z) angular acceleration is lost and it says so."""
+    from filters.reduced import reduced_solve
+    from ngnav.layout import kinematic_features, rate_quadratics
+    from tests.conftest import rigid_body_outputs_direct
+
+    lay = nine_accelerometer_cube(0.1)
+    cols = ArraySolver(lay).solved_columns
+    rng = np.random.default_rng(9)
+    wd, f, w = rng.normal(size=3), rng.normal(size=3) * 5, rng.normal(size=3)
+    a = rigid_body_outputs_direct(lay.positions_b_m, lay.axes_b, wd, f, w)
+    phi = kinematic_features(wd, f, w)[cols]
+    for c in range(9):
+        red = reduced_solve(lay, np.ones(9), cols, 1 << c)
+        bad = a.copy()
+        bad[c] = 1e3
+        got = red.solve_matrix @ bad - red.aided_quadratics @ rate_quadratics(w)
+        assert red.solved.sum() == 8 and np.all(red.solved[:6])
+        np.testing.assert_allclose(got[red.solved], phi[red.solved], atol=1e-11)
+    with pytest.raises(ValueError, match="angular acceleration"):
+        reduced_solve(lay, np.ones(9), cols, (1 << 1) | (1 << 4))
+
+
+def test_a_rate_nis_of_fewer_dof_is_judged_on_the_full_dimension():
+    from types import SimpleNamespace
+
+    from filters.consistency import _rate_nis_as_full_dim
+
+    rng = np.random.default_rng(10)
+    nis = np.concatenate([rng.chisquare(3, 50_000), rng.chisquare(2, 50_000)])
+    dof = np.repeat([3, 2], 50_000)
+    res = SimpleNamespace(rate_nis=nis, rate_nis_dof=dof, rate_dim=3)
+    out = _rate_nis_as_full_dim(res)
+    np.testing.assert_array_equal(out[:50_000], nis[:50_000])
+    assert np.mean(out[50_000:]) == pytest.approx(3.0, abs=0.05)
+    assert np.mean(out[50_000:] > 7.815) == pytest.approx(0.05, abs=0.005)  # chi2(3) 95 %

@@ -213,12 +213,15 @@ def cmd_faults(args: argparse.Namespace) -> int:
                     f"; attitude error at detection {a['median']:.2f} / {a['worst']:.2f} sigma, "
                     f"within 3 sigma {r['within_3_sigma']}/{r['detected']}"
                 )
+        if r["stopped"]:
+            line += f"; filter stopped in {r['stopped']} runs"
         print(line)
     ff = out["fault_free"]
     if ff["flights"]:
         print(
             f"  fault-free: {ff['flights']} flights, {ff['flight_hours']:.2f} flight-hours, "
             f"{ff['alarms']} alarms"
+            + (f", filter stopped in {ff['stopped']}" if ff["stopped"] else "")
         )
     return 0
 
