@@ -17,7 +17,7 @@ import numpy as np
 
 from filters.state import ATT
 from ngnav.errors import CovarianceError
-from ngnav.sim.faults import ChannelFault
+from ngnav.sim.faults import TRIAL_DRIFT_MPS2_PER_S, ChannelFault
 
 
 @dataclass(frozen=True)
@@ -126,8 +126,6 @@ def fault_trial(scn, run: int, fault: ChannelFault | None, watch_s: float) -> Tr
     )
 
 
-#: The drift ``ngnav faults`` injects by default, m/s^2 per s (1 milli-g per second).
-DEFAULT_DRIFT_MPS2_PER_S = 0.00980665
 #: The other kinds' default sizes (``dead`` and ``stuck`` take none).
 DEFAULT_SIZES = {"dead": 0.0, "stuck": 0.0, "noisy": 10.0, "saturated": 1.0}
 
@@ -143,7 +141,7 @@ def fault_campaign(
     runs: int,
     clean_runs: int,
     *,
-    drift_mps2_per_s: float = DEFAULT_DRIFT_MPS2_PER_S,
+    drift_mps2_per_s: float = TRIAL_DRIFT_MPS2_PER_S,
     watch_s: float = 10.0,
     workers: int = 2,
     scheduler: str | None = None,

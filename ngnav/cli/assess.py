@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from ngnav.cli import add_flight_args, flight_scenario, show_progress
+from ngnav.sim.faults import TRIAL_DRIFT_MPS2_PER_S
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -311,7 +312,7 @@ def add_parsers(sub) -> None:
     p.add_argument(
         "--drift",
         type=float,
-        default=0.00980665,
+        default=TRIAL_DRIFT_MPS2_PER_S,
         metavar="MPS2_PER_S",
         help="the drift's rate, m/s^2 per s (default: 1 milli-g per second)",
     )

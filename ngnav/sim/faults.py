@@ -26,6 +26,8 @@ import numpy as np
 
 #: The kinds of channel fault the simulator injects (and the monitor names).
 FAULT_KINDS = ("dead", "stuck", "drift", "noisy", "saturated")
+#: The drift ``ngnav faults`` injects unless told, m/s^2 per s: 1 milli-g per second.
+TRIAL_DRIFT_MPS2_PER_S = 0.00980665
 #: The size a fault takes when its table leaves ``size`` out (NaN: the kind needs one).
 _DEFAULT_SIZE = {"dead": 0.0, "stuck": 0.0, "drift": float("nan"), "noisy": 10.0, "saturated": 1.0}
 
