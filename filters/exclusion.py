@@ -133,20 +133,20 @@ class SuspectsMixin:
         u = self._solve_now()[:, list(channels)]  # the raw feature biases' directions, per m/s^2
         nf.set_extra_bias_walk(SUSPECT_WALK_MPS2_RTS**2 * (u @ u.T))
         bs = nf.layout.bias
-        self._suspects = (tuple(channels), u, nf.bias.copy(), nf.P[bs, bs].copy())
+        # what reads each suspect's offset from the biases, once per alarm
+        self._suspects = (tuple(channels), np.linalg.pinv(u), nf.bias.copy(), nf.P[bs, bs].copy())
 
     def _test_suspects(self) -> None:
         """Name a suspect whose offset estimate stands out (then it is isolated)."""
         if self._suspects is None:
             return
-        channels, u, b0, p0 = self._suspects
+        channels, lu, b0, p0 = self._suspects
         if self._excluded & sum(1 << c for c in channels):
             # a sample test named one of them: it is out, the others are clear
             self._clear_suspects()
             return
         nf = self.nf
         bs = nf.layout.bias
-        lu = np.linalg.pinv(u)
         d = lu @ (nf.bias - b0)
         # the change's uncertainty: the estimate's now and at the alarm (their
         # correlation left out: conservative)

@@ -106,8 +106,9 @@ class ChannelMonitor:
         self.range_mps2 = float(range_mps2)
         # the median of a squared N(0, 6 sigma^2) second difference
         self._d2_median = 6.0 * sigma * sigma * _CHI2_1_MEDIAN
+        self._parity_channels: set[int] = set()  # channels a parity alarm has named
         self.set_signatures(signatures)
-        # carried sample state: the last two readings, the flat run's length and start
+        # carried sample state: the last two readings, the flat run's length
         self._prev = np.full((2, n), np.nan)
         self._run = np.zeros(n, dtype=np.int64)  # repeats of the last reading so far
         self._win = np.empty((NOISE_WINDOW, n))
@@ -131,9 +132,8 @@ class ChannelMonitor:
         g = np.array([self._sig[:, grp[0]] for grp in self.groups], dtype=float)
         self._g_sig = g.reshape(len(self.groups), self._sig.shape[0])
         self._cusum = np.zeros((len(self.groups), 2))  # (group, sign)
-        held = getattr(self, "_parity_channels", set())
+        held = self._parity_channels
         self._parity = np.array([bool(held & set(grp)) for grp in self.groups], dtype=bool)
-        self._parity_channels = held
 
     def take_ambiguous(self) -> list[tuple[tuple[int, ...], float]]:
         """Parity alarms on a group of channels (0-based) since the last call, with their
