@@ -85,6 +85,7 @@ class AlignmentMixin:
             liftoff_speed_mps=veh.liftoff_speed_mps,
             aoa_lift_k_sigma_m=veh.lift_k_sigma_m,
             quad_feedback=None if se is None else se[6:, 6:12],
+            feature_quad_feedback=None if se is None else se[0:6, 6:12],
             remainder_updates=veh.remainder_updates,
             attitude_remainder_updates=veh.attitude_remainder_updates,
             coast_remainder_updates=veh.coast_remainder_updates,

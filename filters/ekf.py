@@ -110,6 +110,12 @@ class NavFilter(
         history, so a rate error ``dw`` returns in the compensated terms as
         ``E_q J6 dw`` beside the products' own ``J dw``; the rate measurement's
         Jacobian carries both (see :meth:`rate_model`). None: the products alone.
+    feature_quad_feedback : array (6, 6), optional
+        The same for the solved angular acceleration and force (their rows of ``S E``):
+        a rate error returns in them as ``A S E_q J6 dw`` (``A`` the loop's map,
+        ``noise.bias_effect``), which the transition carries (:meth:`propagation_matrices`).
+        Negligible at a few rad/s; at a projectile's spin (12 rad/s) it drives the rate
+        error with a time constant of 10-20 s.
     remainder_updates, attitude_remainder_updates : float
         How many times the body-velocity updates count their second-order
         remainder's variance and its attitude-product part (>= 1;
@@ -189,6 +195,7 @@ class NavFilter(
     liftoff_speed_mps: float = 0.0
     aoa_lift_k_sigma_m: float = 0.0
     quad_feedback: np.ndarray | None = None
+    feature_quad_feedback: np.ndarray | None = None
     remainder_updates: float = SIDESLIP_REMAINDER_UPDATES
     attitude_remainder_updates: float = ATTITUDE_REMAINDER_UPDATES
     coast_remainder_updates: float = COAST_REMAINDER_UPDATES

@@ -95,6 +95,7 @@ class ExclusionMixin:
             noise,
             s_new,
             None if se is None else se[6:, 6:12],
+            None if se is None else se[0:6, 6:12],
             nq_rows,
             red.aided_quadratics,
             bias_map,

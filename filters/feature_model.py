@@ -35,6 +35,7 @@ class FeatureModelMixin:
         noise: FilterNoise,
         solve_matrix: np.ndarray,
         quad_feedback: np.ndarray | None,
+        feature_quad_feedback: np.ndarray | None,
         rate_rows: np.ndarray,
         aided_quadratics: np.ndarray,
         bias_map: np.ndarray,
@@ -59,6 +60,7 @@ class FeatureModelMixin:
         self.noise = noise
         self.solve_matrix = solve_matrix
         self.quad_feedback = quad_feedback
+        self.feature_quad_feedback = feature_quad_feedback
         self.rate_rows = np.asarray(rate_rows, dtype=bool).copy()
         aided = np.asarray(aided_quadratics, dtype=float)
         self._aided_quadratics = aided[0:6].copy()
@@ -85,6 +87,10 @@ class FeatureModelMixin:
         te = self.noise.bias_effect
         te = np.eye(k) if te is None else np.array(te, dtype=float)
         self._bias_effect_f = te[3:6].copy()  # into the force (FRD), per block rotated to NED
+        # what a rate error leaves in the propagated [wdot, f] (6, 3 per unit J6(w)): the
+        # forecast's products and any aided ones, through the loop's map A
+        into = [m for m in (self.feature_quad_feedback, self._aided_quadratics) if m is not None]
+        self._quad_into_features = te[0:6, 0:6] @ sum(into) if into else None
         # the constant part of the error dynamics, copied and filled per block: only
         # the navigation rows (position, velocity, attitude, rate) of F are non-zero
         # (biases and the angle-of-attack offset walk, DR and K are constants)
@@ -105,6 +111,7 @@ class FeatureModelMixin:
             # (geometry_jacobian)
             ts = te @ np.asarray(self.solve_matrix, dtype=float)
             self._solve_rep = np.repeat(ts, 3, axis=1)
+            self._solve_t = ts
         d = _product_derivatives(self.quad_pairs.tolist())
         if self.quad_feedback is not None:
             fb = np.asarray(self.quad_feedback, dtype=float)

@@ -54,6 +54,7 @@ class MeasurementsMixin:
             h[:, RATE] += self._aided_in_quad @ (self._quad6_d @ w_mean)
         if self.layout.n_dr:
             h[:, self.layout.dr] = sg[6:]
+            h[:, RATE] += self.geometry_rate_jacobian(w_mean)[6:]
         return pred, h
 
     def measure_rate(

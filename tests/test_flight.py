@@ -125,6 +125,51 @@ def test_sampled_rate_derivative_integrates_to_the_rate_across_ramp_ends():
     assert errs[1] < errs[0] / 3.5 and errs[2] < errs[1] / 3.5
 
 
+def _spinning_plan(spin: Profile) -> FlightPlan:
+    return dataclasses.replace(_turning_plan(), spin_rate=spin)
+
+
+def test_a_spinning_body_is_the_flight_rolled_by_the_spin_angle():
+    """The spin rolls the body about its x axis by the spin rate's exact integral (a
+    minimum-jerk rate ramp integrates to ``d T (2.5 u^4 - 3 u^5 + u^6)``), and nothing
+    else: the path is the same, the force and the flight's own rate are seen rolled."""
+    delta, start, dur = np.deg2rad(720.0), 0.7, 2.0
+    spun = fly(_spinning_plan(Profile(0.0, (Transition(start, dur, delta),))), 500.0)
+    flat = fly(_turning_plan(), 500.0)
+    u = np.clip((flat.t_s - start) / dur, 0.0, 1.0)
+    angle = delta * dur * (2.5 * u**4 - 3 * u**5 + u**6)
+    angle += delta * np.maximum(flat.t_s - start - dur, 0.0)
+    q_x = np.stack([np.cos(angle / 2), np.sin(angle / 2), 0 * angle, 0 * angle], -1)
+    assert np.allclose(spun.q_nb, quat_multiply(flat.q_nb, q_x), atol=1e-12, rtol=0)
+    assert np.array_equal(spun.pos_ned_m, flat.pos_ned_m)
+    assert np.array_equal(spun.vel_ned_mps, flat.vel_ned_mps)
+    c, s_ = np.cos(angle), np.sin(angle)
+    f = flat.f_b_mps2
+    rolled = np.stack([f[:, 0], c * f[:, 1] + s_ * f[:, 2], -s_ * f[:, 1] + c * f[:, 2]], -1)
+    assert np.allclose(spun.f_b_mps2, rolled, atol=1e-10, rtol=0)  # angles up to 60 rad
+    assert np.rad2deg(spun.omega_b_rps[-1, 0] - flat.omega_b_rps[-1, 0]) == pytest.approx(
+        720.0, abs=1e-9
+    )
+
+
+def test_a_spinning_body_rate_derivative_and_attitude_rate_are_exact():
+    # central differences converge at second order to the analytic rate derivative, and
+    # the attitude's derivative gives the rate, at 720 deg/s of spin
+    plan = _spinning_plan(Profile(0.0, (Transition(0.7, 2.0, np.deg2rad(720.0)),)))
+    knots = np.array([0.0, 0.5, 0.7, 1.0, 1.5, 2.7, 3.0, 3.2, 4.0, 4.4, 4.5])
+    errs, att_errs = [], []
+    for rate in (400.0, 800.0, 1600.0):
+        tr = fly(plan, rate)
+        fd = (tr.omega_b_rps[2:] - tr.omega_b_rps[:-2]) * rate / 2
+        smooth = np.min(np.abs(tr.t_s[1:-1, None] - knots), axis=1) > 0.05
+        errs.append(np.abs(fd - tr.omega_dot_b_rps2[1:-1])[smooth].max())
+        dq = (tr.q_nb[2:] - tr.q_nb[:-2]) * rate / 2
+        w = 2 * quat_multiply(quat_conjugate(tr.q_nb[1:-1]), dq)[:, 1:]
+        att_errs.append(np.abs(w - tr.omega_b_rps[1:-1]).max())
+    assert errs[1] < errs[0] / 3.5 and errs[2] < errs[1] / 3.5
+    assert att_errs[1] < att_errs[0] / 3.5 and att_errs[2] < att_errs[1] / 3.5
+
+
 def test_rate_is_the_rate_of_the_attitude():
     tr = fly(_turning_plan(), 1000.0)
     # omega_b = 2 * vec(conj(q) * dq/dt), dq/dt by central differences
@@ -201,6 +246,11 @@ def test_shipped_flights_meet_their_descriptions():
     assert np.abs(tr.f_b_mps2).max() <= 2.5 * G0_MPS2
     assert np.rad2deg(np.abs(tr.omega_b_rps[:, 0]).max()) > 100.0  # at the paper's limits
     assert np.abs(tr.f_b_mps2[:, 2]).max() > 2.0 * G0_MPS2
+    proj = load_flight("projectile")
+    tr = fly(proj.plan(), 1000.0)
+    assert np.rad2deg(tr.omega_b_rps[:, 0].max()) == pytest.approx(720.0)  # several hundred
+    assert 20.0 * G0_MPS2 < np.abs(tr.f_b_mps2).max() < proj.sensor.spec().range_g * G0_MPS2
+    assert tr.t_s[-1] == pytest.approx(40.0)
 
 
 @settings(max_examples=50, deadline=None)

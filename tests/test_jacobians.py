@@ -67,6 +67,7 @@ def _filter(
     lift_k_sigma_m: float = 0.0,
     liftoff_mps: float = 0.0,
     quad_feedback: np.ndarray | None = None,
+    feature_quad_feedback: np.ndarray | None = None,
     body_velocity_error: bool = False,
     antenna: np.ndarray = ANTENNA,
 ) -> NavFilter:
@@ -82,6 +83,7 @@ def _filter(
         aoa_lift_k_sigma_m=lift_k_sigma_m,
         liftoff_speed_mps=liftoff_mps,
         quad_feedback=quad_feedback,
+        feature_quad_feedback=feature_quad_feedback,
         body_velocity_error=body_velocity_error,
     )
     # attitude known to 0.01 rad: |v| tr(P_att) / 2 = 7e-3 m/s keeps the body-frame
@@ -234,20 +236,27 @@ def _rate_prediction(nf: NavFilter, w_block: np.ndarray, sg: np.ndarray | None) 
 def test_rate_product_jacobian(with_positions):
     """Rate products' H (rate, quadratic biases and, with DR states, the sensor
     positions through ``S G``) against central differences of the update's prediction,
-    the rate error shifting every sample of the block alike."""
+    the rate error shifting every sample of the block alike. The positions' effect is
+    made at the true motion, ``S G(w) dr``: with the estimated ``dr`` nonzero a rate error
+    moves it too (:meth:`NavFilter.geometry_rate_jacobian`, at the block's mean rate)."""
     nf = _filter(position_sigma_m=5e-4 if with_positions else 0.0)
     assert (nf.layout.n_dr > 0) is with_positions
     w_block = _block_rates(nf)
-    sg = nf.geometry_jacobian(np.array([1.5, -2.0, 0.7]), nf.w) if with_positions else None
+    wdot = np.array([1.5, -2.0, 0.7])
+    sg = nf.geometry_jacobian(wdot, w_block.mean(axis=0)) if with_positions else None
 
     def pred(f: NavFilter) -> np.ndarray:
-        return _rate_prediction(f, w_block + (f.w - nf.w), sg)
+        w_true = w_block + (f.w - nf.w)
+        sg_true = f.geometry_jacobian(wdot, w_true.mean(axis=0)) if with_positions else None
+        return _rate_prediction(f, w_true, sg_true)
 
     _, h = nf.rate_model(w_block, sg)
     fd, tol = _fd_jacobian(nf, pred)
     _check(h, fd, tol, f"rate products{' with DR' if with_positions else ''}")
     if with_positions:
         assert np.abs(h[:, nf.layout.dr]).max() > 1e-3
+        # the positions' share of the rate columns is far above the tolerance
+        assert np.abs(nf.geometry_rate_jacobian(nf.w)[6:]).max() > 1e3 * tol.max()
 
 
 def test_rate_product_jacobian_with_the_forecasts_feedback():
@@ -525,6 +534,58 @@ def test_transition_matches_finite_differences_of_the_propagation(body_velocity_
     # rows below the navigation states: identity (walks and constants)
     np.testing.assert_allclose(fd[12:, :], np.eye(lay.n)[12:, :], rtol=0, atol=1e-9)
     np.testing.assert_allclose(phi_used[12:, :], np.eye(lay.n)[12:, :], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("term", ["positions", "forecast"])
+def test_transition_carries_what_the_features_make_from_the_rate(term):
+    """A rate error reaches the block's angular acceleration and force through what is
+    made from the estimated rate: the positions' effect the nominal removes,
+    ``S G(w_hat) dr_hat``, and the forecast's products ``A S E_q q6(w_hat)`` the
+    compensation removes. Central differences of a block whose features are made at an
+    estimate off in its rate, against F's rate columns at a spin of 6 rad/s (measured:
+    1e-4 and 5 % of the term apart; the block turns 0.06 rad, which F's block-start
+    linearisation leaves out)."""
+    fb = np.random.default_rng(7).normal(0.0, 0.08, (6, 6)) if term == "forecast" else None
+    nf = _filter(position_sigma_m=5e-4 if term == "positions" else 0.0, feature_quad_feedback=fb)
+    nf.w = np.array([6.0, 0.3, -0.2])
+    wdot, f = _block_samples()
+    nf.set_last_sample(wdot[0], f[0])
+    pairs = np.array(QUAD_PAIRS)
+
+    def sg_at(w: np.ndarray) -> np.ndarray | None:
+        return nf.geometry_jacobian(wdot.mean(axis=0), w) if nf.layout.n_dr else None
+
+    def propagated(est: NavFilter) -> NavFilter:
+        out = copy.deepcopy(est)
+        made = np.zeros(6)
+        if fb is not None:  # the compensation's products from the estimate's rate
+            q6 = lambda w: w[pairs[:, 0]] * w[pairs[:, 1]]  # noqa: E731
+            made = fb @ (q6(nf.w) - q6(est.w))
+        out.propagate(wdot + made[0:3], f + made[3:6], DT, sg_at(est.w))
+        return out
+
+    end = propagated(nf)
+    h = 1e-5
+    fd = np.empty((12, 3))
+    for j in range(3):
+        d = np.zeros(nf.layout.n)
+        d[RATE.start + j] = h
+        # the estimate off by -d: the error (true - estimate) is +d
+        fd[:, j] = (
+            _error(end, propagated(_injected(nf, -d))) - _error(end, propagated(_injected(nf, d)))
+        )[:12] / (2 * h)
+    c0 = dcm_from_quat(nf.q)
+    f_n = c0 @ (f - nf.bias[3:6]).mean(axis=0)
+    phi, _ = nf.propagation_matrices(K_BLOCK, DT, c0, f_n, sg_at(nf.w))
+    plain = copy.deepcopy(nf)
+    plain._quad_into_features = None
+    if nf.layout.n_dr:
+        plain.dr = np.zeros_like(nf.dr)
+    phi_plain, _ = plain.propagation_matrices(K_BLOCK, DT, c0, f_n, sg_at(nf.w))
+    term = np.abs(phi - phi_plain)[RATE, RATE].max()
+    assert term > 1e-4  # 0.06 rad of turn: the rate columns agree to 10 % of the term
+    assert np.abs(fd[RATE] - phi[RATE, RATE]).max() < 0.1 * term
+    assert np.abs(fd[RATE] - phi_plain[RATE, RATE]).max() > 0.9 * term
 
 
 def _error_body(true: NavFilter, est: NavFilter) -> np.ndarray:

@@ -48,7 +48,7 @@ def add_flight_args(p: argparse.ArgumentParser, default: str = "uav-survey") -> 
     p.add_argument(
         "--scenario",
         default=default,
-        help="shipped flight scenario (static, uav-survey, tactical) or TOML path "
+        help="shipped flight scenario (static, uav-survey, tactical, projectile) or TOML path "
         "(default: %(default)s)",
     )
     add_set_arg(p)

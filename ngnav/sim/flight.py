@@ -18,6 +18,8 @@ and their derivatives:
   time derivative (never a finite difference of sampled attitude);
   ``omega_b = C_bw omega_w + [0, alpha_dot, 0]`` and
   ``omega_dot_b = C_bw omega_dot_w + (dC_bw/dt) omega_w + [0, alpha_ddot, 0]``;
+- a spinning body is rolled further about its own x axis by the spin angle ``s``
+  (the spin rate's integral): ``q_nb = q_nw q_y(alpha) q_x(s)``;
 - ``a_w = [V_dot, omega_wz V, -omega_wy V]`` (the derivative of ``C_nw [V, 0, 0]``),
   ``f_b = C_bw (a_w - C_wn g_n)``.
 
@@ -255,6 +257,9 @@ class FlightPlan:
         body y. Zero by default (the body flies along its x axis).
     lift : LiftLaw, optional
         Angle of attack from the lift law instead (``aoa`` must then stay zero).
+    spin_rate : Profile
+        Roll rate of the body about its own x axis on top of the flight's (rad/s): a
+        spinning projectile. Zero by default.
     """
 
     duration_s: float
@@ -266,6 +271,7 @@ class FlightPlan:
     taxi_speed_mps: float = 2.0
     aoa: Profile = Profile(0.0)
     lift: LiftLaw | None = None
+    spin_rate: Profile = Profile(0.0)
 
     def __post_init__(self) -> None:
         if self.lift is not None and (self.aoa.initial != 0.0 or self.aoa.transitions):
@@ -382,6 +388,47 @@ def _integrate_heading_and_position(
     return psi, pos
 
 
+def _spin_angle(plan: FlightPlan, t: np.ndarray) -> np.ndarray:
+    """Spin angle (T,), rad: the spin rate's integral by Gauss-Legendre per interval
+    (exact for the quintic minimum-jerk ramps)."""
+    h = np.diff(t)
+    nodes = t[:-1, None] + h[:, None] * 0.5 * (1.0 + _GL_X)
+    rate = plan.spin_rate.evaluate(nodes.ravel())[0].reshape(nodes.shape)
+    return np.concatenate([[0.0], np.cumsum(0.5 * h * (rate @ _GL_W))])
+
+
+def _add_spin(
+    plan: FlightPlan, t: np.ndarray, w: np.ndarray, wd: np.ndarray, f: np.ndarray, q: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Roll the body by the spin angle about its x axis: ``q_nb = q_nb' q_x(s)``, with
+    ``omega_b = C_bb' omega_b' + [s_dot, 0, 0]`` and its exact derivative."""
+    s = _spin_angle(plan, t)
+    p, dp, _ = plan.spin_rate.evaluate(t)
+    cs, ss = np.cos(s), np.sin(s)
+    zero, one = np.zeros_like(s), np.ones_like(s)
+    c = np.stack(
+        [
+            np.stack([one, zero, zero], -1),
+            np.stack([zero, cs, ss], -1),
+            np.stack([zero, -ss, cs], -1),
+        ],
+        axis=-2,
+    )  # (T, 3, 3): rows are the spun body's axes in the unspun body
+    dc = p[:, None, None] * np.stack(
+        [
+            np.stack([zero, zero, zero], -1),
+            np.stack([zero, -ss, cs], -1),
+            np.stack([zero, -cs, -ss], -1),
+        ],
+        axis=-2,
+    )
+    e_x = np.array([1.0, 0.0, 0.0])
+    w_s = np.einsum("tij,tj->ti", c, w) + p[:, None] * e_x
+    wd_s = np.einsum("tij,tj->ti", c, wd) + np.einsum("tij,tj->ti", dc, w) + dp[:, None] * e_x
+    q_x = np.stack([np.cos(s / 2), np.sin(s / 2), zero, zero], -1)
+    return w_s, wd_s, np.einsum("tij,tj->ti", c, f), quat_multiply(q, q_x)
+
+
 def fly(plan: FlightPlan, rate_hz: float) -> FlightTruth:
     """Sample the exact truth of ``plan`` at ``rate_hz`` from t = 0 to its duration.
 
@@ -441,4 +488,6 @@ def fly(plan: FlightPlan, rate_hz: float) -> FlightTruth:
     q_y = np.stack([np.cos(al / 2), zero, np.sin(al / 2), zero], -1)
     q = quat_multiply(q_nw, q_y)
     f_b = np.einsum("tij,tj->ti", c_bw, f_w)
+    if plan.spin_rate.initial != 0.0 or plan.spin_rate.transitions:
+        w, wd, f_b, q = _add_spin(plan, t, w, wd, f_b, q)
     return FlightTruth(t, pos, vel, q, w, wd, f_b)

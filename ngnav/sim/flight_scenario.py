@@ -6,8 +6,9 @@ initialised, and the flight itself as a list of legs. Each leg starts by
 moving bank, pitch (of the flight path), speed, yaw rate and angle of attack
 to its targets with a minimum-jerk ramp of ``ramp_s`` and holds them to the
 end of the leg; a key a leg leaves out keeps its previous value.
-``[flight] initial_speed_mps`` and ``initial_aoa_deg`` give the values at
-t = 0 (both 0 by default: at rest, body along the velocity). Instead of
+``[flight] initial_speed_mps``, ``initial_aoa_deg`` and ``initial_pitch_deg`` give
+the values at t = 0 (all 0 by default: at rest, level, body along the velocity). A
+leg's ``spin_rate_dps`` spins the body about its own x axis (a projectile). Instead of
 scheduling the angle of attack, ``[flight] lift = { alpha0_deg, k_m,
 liftoff_speed_mps }`` makes it the one the lift law asks for
 (:class:`ngnav.sim.flight.LiftLaw`): the aircraft type's law. ``[flight] lift_scatter
@@ -122,6 +123,7 @@ class Leg:
     speed_mps: float | None = None
     yaw_rate_dps: float | None = None
     aoa_deg: float | None = None
+    spin_rate_dps: float | None = None
 
 
 @dataclass(frozen=True)
@@ -140,6 +142,7 @@ class FlightScenario:
     legs: tuple[Leg, ...]
     initial_speed_mps: float = 0.0
     initial_aoa_deg: float = 0.0
+    initial_pitch_deg: float = 0.0
     compensation: CompensationSettings = dataclasses.field(default_factory=CompensationSettings)
     vehicle: VehicleSettings = dataclasses.field(default_factory=VehicleSettings)
     rest: RestSettings = dataclasses.field(default_factory=RestSettings)
@@ -148,16 +151,21 @@ class FlightScenario:
     lift_scatter: tuple[float, float] | None = None
     #: Channel faults the simulator injects (``[faults]``; :mod:`ngnav.sim.faults`).
     faults: tuple[ChannelFault, ...] = ()
+    #: Times the filter is told its track is lost (``[faults] lose_track_at_s``, s): the
+    #: recovery's validation (:mod:`filters.recovery`).
+    lose_track_at_s: tuple[float, ...] = ()
 
     def plan(self) -> FlightPlan:
         """The flight's bank, pitch, speed, yaw-rate and angle-of-attack profiles."""
         aoa0 = float(np.deg2rad(self.initial_aoa_deg))
+        pitch0 = float(np.deg2rad(self.initial_pitch_deg))
         current = {
             "bank": 0.0,
-            "pitch": 0.0,
+            "pitch": pitch0,
             "speed": self.initial_speed_mps,
             "yaw": 0.0,
             "aoa": aoa0,
+            "spin": 0.0,
         }
         trans: dict[str, list[Transition]] = {k: [] for k in current}
         start = 0.0
@@ -167,6 +175,7 @@ class FlightScenario:
             "speed": "speed_mps",
             "yaw": "yaw_rate_dps",
             "aoa": "aoa_deg",
+            "spin": "spin_rate_dps",
         }
         for leg in self.legs:
             for k, attr in keys.items():
@@ -181,12 +190,13 @@ class FlightScenario:
         return FlightPlan(
             duration_s=start,
             bank=Profile(0.0, tuple(trans["bank"])),
-            pitch=Profile(0.0, tuple(trans["pitch"])),
+            pitch=Profile(pitch0, tuple(trans["pitch"])),
             speed=Profile(self.initial_speed_mps, tuple(trans["speed"])),
             yaw_rate=Profile(0.0, tuple(trans["yaw"])),
             heading0_rad=float(np.deg2rad(self.initial.heading_deg)),
             aoa=Profile(aoa0, tuple(trans["aoa"])),
             lift=self.lift,
+            spin_rate=Profile(0.0, tuple(trans["spin"])),
         )
 
 
@@ -243,7 +253,7 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
     flight = data.get("flight")
     if not isinstance(flight, dict) or "legs" not in flight:
         raise ValueError(f"{source}: missing [flight] with legs")
-    starts = ("initial_speed_mps", "initial_aoa_deg")
+    starts = ("initial_speed_mps", "initial_aoa_deg", "initial_pitch_deg")
     extra = sorted(set(flight) - {"legs", "lift", "lift_scatter", *starts})
     if extra:
         raise ValueError(f"{source}: unknown key flight.{extra[0]}")
@@ -288,7 +298,13 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
             raise ValueError(f"{source}: flight.lift_scatter: expected numbers >= 0")
         scatter = (float(np.deg2rad(vals[0])), float(vals[1]))
     parts["sensor"].spec()  # validate the preset now, naming the file
-    faults = parse_faults(data["faults"], source)
+    fault_table = dict(data["faults"]) if isinstance(data["faults"], dict) else data["faults"]
+    losses = fault_table.pop("lose_track_at_s", []) if isinstance(fault_table, dict) else []
+    if not isinstance(losses, list) or any(
+        isinstance(v, bool) or not isinstance(v, int | float) or not v > 0 for v in losses
+    ):
+        raise ValueError(f"{source}: faults.lose_track_at_s must be a list of times > 0 s")
+    faults = parse_faults(fault_table, source)
     n_channels = layout_by_name(parts["array"].layout, parts["array"].lever_arm_m).n_sensors
     for f in faults:
         if f.channel > n_channels:
@@ -303,6 +319,7 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
         lift=lift,
         lift_scatter=scatter,
         faults=faults,
+        lose_track_at_s=tuple(float(v) for v in sorted(losses)),
         **parts,
     )
 
