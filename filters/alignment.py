@@ -203,45 +203,13 @@ class AlignmentMixin:
         self._i_start = i_start
         self._i0 = i_start
         self._next_grid = i_start + k_reg
-        k_feat = self._k
         lo = max(0, i_start - k_reg)
-        seed_block = sa[lo : i_start + 1]
-        seed_ok = ~invalid[lo : i_start + 1]
-        seed_mean = seed_block[seed_ok].mean(axis=0) if np.any(seed_ok) else np.zeros(k_feat)
-        # the seed's motion [wdot, f]: its raw features less the bias estimates hold the
-        # mounting term too, (I + E_6) of it plus E of the rate's quadratics, so invert
-        # that (without it the first forecasts held E f, about an axis error times g
-        # over the arm on the angular acceleration, and their error opened the
-        # forecast-error noise at every start)
-        seed_motion = seed_mean[0:6] - nf.bias[0:6]
-        if se is not None:
-            seed_motion = np.linalg.solve(
-                np.eye(6) + se[0:6, 0:6], seed_motion - se[0:6, 6:12] @ rate_quadratics(nf.w)
-            )
-        if nf.layout.n_aoa and np.any(seed_ok):
-            # the lift law needs a load before the first block: the seed's (without it
-            # the first epoch's angle of attack was the law's offset alone, 2.5-3.5 deg
-            # off on tactical at 1 g and 60 m/s)
-            nf.set_load(
-                seed_motion[3:6],
-                load_cov=nf.noise.feature_cov[3:6, 3:6] / int(np.count_nonzero(seed_ok)),
-            )
         if self.smooth:
             self.smoother = SmootherLog(nf.layout.n)
             nf.lag = self.smoother.lag
-        self._record()
         self._hist = np.empty((window + 1024, 9))
-        self._h_n = window  # rows used
-        # the forecast history holds motion: block means less the current bias estimates
-        self._hist[:window] = np.concatenate([nf.w, seed_motion])
-        self._last_mean = seed_mean.copy()
-        first_row = sa[i_start] if not invalid[i_start] else seed_mean
-        if se is not None:
-            h0 = self._hist[0]
-            first_row = first_row - se @ np.concatenate(
-                [h0[3:6], h0[6:9], rate_quadratics(h0[0:3])]
-            )
-        nf.set_last_sample(first_row[0:3], first_row[3:6])
+        self._seed_compensation(sa[lo : i_start + 1], ~invalid[lo : i_start + 1])
+        self._record()
         self._with_dr = nf.layout.n_dr > 0
         # the fixed-wing's calm-air models (none for a free vehicle)
         calm_air_sigma_deg = CALM_AIR_SIGMA_DEG if cfg.vehicle.fixed_wing else 0.0
@@ -294,3 +262,40 @@ class AlignmentMixin:
         self._e = 0
         self._t_hold = 0.0  # seconds of held samples in the current run
         self.started = True
+
+    def _seed_compensation(self, seed_block: np.ndarray, seed_ok: np.ndarray) -> None:
+        """Start the compensation's history on the features (K, k) of the samples up to
+        the start (``seed_ok`` (K,): the valid ones), the last row the start's own."""
+        nf = self.nf
+        se = self._se
+        window = self._window
+        seed_mean = seed_block[seed_ok].mean(axis=0) if np.any(seed_ok) else np.zeros(self._k)
+        # the seed's motion [wdot, f]: its raw features less the bias estimates hold the
+        # mounting term too, (I + E_6) of it plus E of the rate's quadratics, so invert
+        # that (without it the first forecasts held E f, about an axis error times g
+        # over the arm on the angular acceleration, and their error opened the
+        # forecast-error noise at every start)
+        seed_motion = seed_mean[0:6] - nf.bias[0:6]
+        if se is not None:
+            seed_motion = np.linalg.solve(
+                np.eye(6) + se[0:6, 0:6], seed_motion - se[0:6, 6:12] @ rate_quadratics(nf.w)
+            )
+        if nf.layout.n_aoa and np.any(seed_ok):
+            # the lift law needs a load before the first block: the seed's (without it
+            # the first epoch's angle of attack was the law's offset alone, 2.5-3.5 deg
+            # off on tactical at 1 g and 60 m/s)
+            nf.set_load(
+                seed_motion[3:6],
+                load_cov=nf.noise.feature_cov[3:6, 3:6] / int(np.count_nonzero(seed_ok)),
+            )
+        self._h_n = window  # rows used
+        # the forecast history holds motion: block means less the current bias estimates
+        self._hist[:window] = np.concatenate([nf.w, seed_motion])
+        self._last_mean = seed_mean.copy()
+        first_row = seed_block[-1] if seed_ok[-1] else seed_mean
+        if se is not None:
+            h0 = self._hist[0]
+            first_row = first_row - se @ np.concatenate(
+                [h0[3:6], h0[6:9], rate_quadratics(h0[0:3])]
+            )
+        nf.set_last_sample(first_row[0:3], first_row[3:6])

@@ -64,6 +64,7 @@ def one_run(
             true_layout=sim.true_layout(),
             truth=sim.truth,
             smooth=smooth,
+            lose_track_at_s=scn.lose_track_at_s,
         )
     except CovarianceError as exc:
         return {"run": i, "diverged": str(exc)}
@@ -89,6 +90,15 @@ def one_run(
         "rate_dim": res.rate_dim,
         **_rms(errs),
     }
+    if res.track_losses:
+        # each loss: how long until the estimates were valid again, s
+        est = res.estimates
+        out["valid_again_s"] = [
+            float(est.t_s[(est.t_s > loss.lost_at_s) & est.valid][0] - loss.lost_at_s)
+            if np.any((est.t_s > loss.lost_at_s) & est.valid)
+            else float("nan")
+            for loss in res.track_losses
+        ]
     if smooth:
         filt = _rms(run_errors(res.estimates, sim.truth))
         out.update({f"filter_{k}": v for k, v in filt.items()})
@@ -99,10 +109,11 @@ def one_run(
 
 
 def _rms(errs) -> dict[str, float]:
-    """Attitude (deg) and rate (deg/s) RMS of a run's errors, vector norms over the run."""
+    """Attitude (deg) and rate (deg/s) RMS of a run's errors, vector norms over the run
+    (the empty epochs of a lost track left out)."""
     return {
-        "att_rms_deg": float(np.rad2deg(np.sqrt(np.mean(np.sum(errs.att_ned_rad**2, axis=1))))),
-        "rate_rms_dps": float(np.rad2deg(np.sqrt(np.mean(np.sum(errs.rate_b_rps**2, axis=1))))),
+        "att_rms_deg": float(np.rad2deg(np.sqrt(np.nanmean(np.sum(errs.att_ned_rad**2, axis=1))))),
+        "rate_rms_dps": float(np.rad2deg(np.sqrt(np.nanmean(np.sum(errs.rate_b_rps**2, axis=1))))),
     }
 
 
@@ -349,6 +360,7 @@ class RunningSummary:
         self._kept_from: dict[str, np.ndarray] = {}
         self._att: dict[int, float] = {}
         self._smoothing: dict[int, tuple[float, float, int]] = {}  # att, rate ratio; restarts
+        self._valid_again: list[float] = []  # per track loss: s until valid again
         self._rate_dim = 0
         self.diverged: list[dict] = []
 
@@ -380,6 +392,7 @@ class RunningSummary:
             if self.from_s is not None:
                 self._means_from[name][i] = float(finite_mean(values[self._kept_from[name]]))
         self._att[i] = rec["att_rms_deg"]
+        self._valid_again += rec.get("valid_again_s", [])
         if "filter_att_rms_deg" in rec:
             self._smoothing[i] = (
                 rec["att_rms_deg"] / rec["filter_att_rms_deg"],
@@ -438,6 +451,13 @@ class RunningSummary:
             out["profile"] = nees_profile(self.t_s, averages, profile_s)
         out["target"] = target_verdict(out["blocks"])
         out["att_rms_deg_median"] = float(np.median([self._att[i] for i in sorted(self._att)]))
+        if self._valid_again:
+            va = np.array(self._valid_again)
+            out["track_losses"] = {
+                "count": int(va.size),
+                "valid_again_s_median": float(np.nanmedian(va)),
+                "valid_again_s_max": float(np.max(va)),
+            }
         if self._smoothing:
             att, rate, restarts = np.array(list(self._smoothing.values())).T
             out["smoothed"] = {

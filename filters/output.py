@@ -8,14 +8,16 @@ Columns (the contract), then extras::
     vn_mps_sigma, ve_mps_sigma, vd_mps_sigma,
     att_n_rad_sigma, att_e_rad_sigma, att_d_rad_sigma,
     wx_radps_sigma, wy_radps_sigma, wz_radps_sigma,
-    roll_deg, pitch_deg, yaw_deg, aoa_deg, aoa_deg_sigma, faulty_channels
+    roll_deg, pitch_deg, yaw_deg, aoa_deg, aoa_deg_sigma, faulty_channels, valid
 
 ``aoa_deg`` and its 1-sigma are the angle-of-attack state (nose above the flight
 path, deg), or empty (NaN) when the filter does not carry it. ``faulty_channels`` is
 a bitmask, bit ``i`` for channel ``i + 1``: held in that epoch's block (non-finite or
 saturated), excluded as failed or suspected by the parity (:mod:`filters.faults`); 0
-on a healthy array. A
-file without it (an older one) reads as 0.
+on a healthy array. ``valid`` is 1, or 0 for the epochs after the filter started again
+from a lost track until its attitude's 1-sigma is back (:mod:`filters.recovery`; no rows
+are written while the track is lost). A file without these columns (an older one) reads
+as 0 and 1.
 
 The attitude's uncertainty is given as the 1-sigma of the NED rotation-vector
 error (``q_true = exp(dtheta) * q_est``), not per quaternion component; for
@@ -67,9 +69,10 @@ ESTIMATE_COLUMNS: tuple[str, ...] = (
     "aoa_deg",
     "aoa_deg_sigma",
     "faulty_channels",
+    "valid",
 )
-#: Columns a file must have (the faulty-channels column came later: 0 without it).
-_REQUIRED_COLUMNS = ESTIMATE_COLUMNS[:-1]
+#: Columns a file must have (the faulty-channels and valid columns came later).
+_REQUIRED_COLUMNS = ESTIMATE_COLUMNS[:-2]
 
 
 #: The 1-sigma columns of the 12 navigation errors, in the state's order.
@@ -90,6 +93,7 @@ def estimates_table(est: Estimates, cfg: RunConfig) -> np.ndarray:
     nan = np.full(est.t_s.shape, np.nan)
     aoa = (nan, nan) if est.aoa_rad is None else (est.aoa_rad, est.aoa_sigma_rad)
     faulty = np.zeros(est.t_s.shape) if est.faulty_channels is None else est.faulty_channels
+    valid = np.ones(est.t_s.shape) if est.valid is None else est.valid
     return np.column_stack(
         [
             est.t_s,
@@ -111,13 +115,14 @@ def estimates_table(est: Estimates, cfg: RunConfig) -> np.ndarray:
             np.rad2deg(aoa[0]),
             np.rad2deg(aoa[1]),
             faulty,
+            valid,
         ]
     )
 
 
 def write_estimates_csv(path: str | Path, est: Estimates, cfg: RunConfig) -> None:
     """Write ``estimates.csv`` (see the module docstring)."""
-    fmt = ["%.6f", "%.10f", "%.10f"] + ["%.6g"] * (len(ESTIMATE_COLUMNS) - 4) + ["%d"]
+    fmt = ["%.6f", "%.10f", "%.10f"] + ["%.6g"] * (len(ESTIMATE_COLUMNS) - 5) + ["%d", "%d"]
     np.savetxt(
         Path(path),
         estimates_table(est, cfg),
@@ -160,6 +165,7 @@ def read_estimates_csv(path: str | Path) -> Estimates:
         aoa_rad=np.deg2rad(aoa) if has_aoa else None,
         aoa_sigma_rad=np.deg2rad(col["aoa_deg_sigma"]) if has_aoa else None,
         faulty_channels=col.get("faulty_channels", np.zeros(data.shape[0])).astype(np.int64),
+        valid=col.get("valid", np.ones(data.shape[0])) != 0,
     )
 
 
@@ -217,7 +223,7 @@ def write_estimates_npz(path: str | Path, res: RunResult) -> None:
     Keys: ``t_s`` (E,), ``pos_ned_m``, ``vel_ned_mps``, ``omega_b_rps`` (E, 3),
     ``q_nb`` (E, 4), ``bias`` (E, k), ``cov_nav`` (E, 12, 12) (position m, velocity m/s,
     NED attitude rad, rate rad/s, with their correlations), ``aoa_rad`` and
-    ``aoa_sigma_rad`` (E,) when carried; ``faulty_channels`` (E,) when kept; the last
+    ``aoa_sigma_rad`` (E,) when carried; ``faulty_channels`` and ``valid`` (E,) when kept; the last
     epoch's ``final_cov`` (n, n) in the order of ``final_blocks`` (names) and
     ``final_dofs``, with ``final_dr_m`` and ``final_aoa_states`` when carried;
     ``version``. Read it with :func:`read_estimates_npz`.
@@ -238,6 +244,8 @@ def write_estimates_npz(path: str | Path, res: RunResult) -> None:
         arrays["aoa_sigma_rad"] = est.aoa_sigma_rad
     if est.faulty_channels is not None:
         arrays["faulty_channels"] = est.faulty_channels
+    if est.valid is not None:
+        arrays["valid"] = est.valid
     fin = res.final
     if fin is not None:
         arrays["final_cov"] = fin.cov
@@ -273,6 +281,7 @@ def read_estimates_npz(path: str | Path) -> tuple[Estimates, NavEstimate | None]
         aoa_rad=get.get("aoa_rad"),
         aoa_sigma_rad=get.get("aoa_sigma_rad"),
         faulty_channels=get.get("faulty_channels"),
+        valid=get.get("valid"),
     )
     if "final_cov" not in get:
         return est, None

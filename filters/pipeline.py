@@ -28,6 +28,7 @@ from filters.ekf import NavFilter
 from filters.exclusion import ExclusionMixin, SuspectsMixin
 from filters.faults import ChannelMonitor
 from filters.noise import filter_noise
+from filters.recovery import RecoveryMixin
 from filters.reduced import ReducedSolve
 from filters.smoother import RESTARTS, SmootherLog
 from filters.state import ATT, POS, RATE, VEL
@@ -53,6 +54,7 @@ from ngnav.records import (
     GpsInnovations,
     NavEstimate,
     RunResult,
+    TrackLoss,
 )
 from ngnav.rotation import euler_from_quat
 from ngnav.runconfig import RunConfig
@@ -67,10 +69,13 @@ FIX_OUTCOMES = (
     "gps fixes outside the array's time span",
     "gps fixes before the filter start",
     "gps fixes after the last array sample",
+    "gps fixes while the track was lost",
 )
 
 
-class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsMixin):
+class Pipeline(
+    StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsMixin, RecoveryMixin
+):
     """The whole chain run as a stream: push samples and fixes, get estimates.
 
     One block at a time: the compensation's forecast, the nominal propagation,
@@ -111,6 +116,9 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsM
     smooth : bool
         Store what a Rauch-Tung-Striebel pass needs (:mod:`filters.smoother`) and
         give :meth:`result` the smoothed estimates after :meth:`finish`.
+    lose_track_at_s : tuple of float
+        Declare the track lost at these times (s, run clock): the recovery's
+        validation (:mod:`filters.recovery`). A covariance failure loses it by itself.
 
     Raises
     ------
@@ -141,6 +149,7 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsM
         keep_estimates: bool = True,
         body_velocity_log: list[BodyVelocityRecord] | None = None,
         smooth: bool = False,
+        lose_track_at_s: tuple[float, ...] = (),
     ) -> None:
         method = compensation or cfg.compensation.method
         if smooth and not keep_estimates:
@@ -233,6 +242,8 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsM
             "samples held (saturated)": 0,
             **dict.fromkeys(FIX_OUTCOMES, 0),
             "gps fixes later than the fusion lag": 0,
+            "track losses (filter started again)": 0,
+            "samples skipped (track lost)": 0,
         }
         self._ltp = LocalTangentPlane(cfg.lat0_deg, cfg.lon0_deg, cfg.alt0_m)
         self.started = False
@@ -260,6 +271,15 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsM
         self.smooth = smooth
         self.smoother: SmootherLog | None = None  # made at the start (the state's size)
         self._smoothed: tuple[Estimates, int] | None = None
+        #: A lost track (time, reason) until the filter starts again (RecoveryMixin).
+        self._lost: tuple[float, str] | None = None
+        self._prev_fix: tuple | None = None
+        #: After a start again: estimates not valid until the attitude's sigmas are back.
+        self._converging = False
+        #: Every loss of the track and start again, in order.
+        self.track_losses: list[TrackLoss] = []
+        #: Times at which to declare the track lost (a recovery's validation), s.
+        self._forced_losses = sorted(lose_track_at_s)
 
     def _record(self) -> None:
         nf = self.nf
@@ -277,6 +297,8 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsM
         lay = nf.layout
         aoa = (nf.aoa, nf.aoa_sigma) if nf.layout.n_aoa else (None, None)
         c = nf.counters
+        if self._converging and self._converged(p):
+            self._converging = False
         est = NavEstimate(
             nf.t_s,
             nf.pos,
@@ -302,6 +324,7 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsM
             state_blocks=tuple((name, dof) for name, dof in lay.blocks if dof),
             dr_m=nf.dr if lay.n_dr else None,
             aoa_states=np.array([nf.aoa_b, nf.aoa_k][: lay.n_aoa]) if lay.n_aoa else None,
+            valid=not self._converging,
         )
         self.latest = est
         self._rows.append(
@@ -317,6 +340,7 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsM
                 est.aoa_rad,
                 est.aoa_sigma_rad,
                 est.faulty_channels,
+                est.valid,
             )
         )
 
@@ -377,6 +401,7 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsM
             smoothed,
             tuple(self.monitor.events),
             np.array(self._rate_nis_dof, dtype=int),
+            tuple(self.track_losses),
         )
 
     def _smooth(self) -> tuple[Estimates, int]:
@@ -385,8 +410,8 @@ class Pipeline(StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsM
         rows, restarts = log.smooth(self.nf.layout)
         if len(rows) != len(self._rows):
             raise RuntimeError(f"smoother: {len(rows)} epochs for {len(self._rows)} estimates")
-        faulty = [r[-1] for r in self._rows]
-        rows = [(*r, None, None, None, f) for r, f in zip(rows, faulty, strict=True)]
+        kept = [r[-2:] for r in self._rows]  # faulty channels, valid
+        rows = [(*r, None, None, None, *k) for r, k in zip(rows, kept, strict=True)]
         return Estimates.from_rows(rows), restarts
 
 
@@ -403,6 +428,7 @@ def run_filter(
     progress=None,
     body_velocity_log: list[BodyVelocityRecord] | None = None,
     smooth: bool = False,
+    lose_track_at_s: tuple[float, ...] = (),
 ) -> RunResult:
     """Run the GPS/array filter over a whole run (a :class:`Pipeline` fed in arrival order).
 
@@ -435,6 +461,8 @@ def run_filter(
         ``python -m studies.remainder`` measures).
     smooth : bool
         Also smooth the run (:mod:`filters.smoother`): the result's ``smoothed``.
+    lose_track_at_s : tuple of float
+        As for :class:`Pipeline`.
 
     Raises
     ------
@@ -464,6 +492,7 @@ def run_filter(
         bound=bound,
         body_velocity_log=body_velocity_log,
         smooth=smooth,
+        lose_track_at_s=lose_track_at_s,
     )
     try:
         _feed(pipe, samples, fixes, progress)

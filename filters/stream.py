@@ -6,6 +6,7 @@ import bisect
 
 import numpy as np
 
+from ngnav.errors import CovarianceError
 from ngnav.layout import kinematic_features
 
 
@@ -202,7 +203,21 @@ class StreamMixin:
             elif i1 + lag_n > last:
                 break
             self._monitor_to(min(i1 + lag_n, last) + 1)
-            self._block(i1)
+            if (
+                self._forced_losses
+                and self._lost is None
+                and self._t[i1 - self._base] >= (self._forced_losses[0])
+            ):
+                self._forced_losses.pop(0)
+                self.lose_track("forced")
+            if self._lost is not None:
+                self._lost_block(i1)
+                continue
+            try:
+                self._block(i1)
+            except CovarianceError as exc:
+                self.lose_track(str(exc))  # raises if the last start again was too recent
+                self._lost_block(i1)
 
     def _count_held(self, g0: int, g1: int, excluded: int) -> np.ndarray:
         """Count rows ``g0 .. g1 - 1`` (global) held for a bad channel not in ``excluded``

@@ -164,6 +164,31 @@ class FaultEvent:
 
 
 @dataclass(frozen=True)
+class TrackLoss:
+    """The filter lost its track and started again (:mod:`filters.recovery`).
+
+    Attributes
+    ----------
+    lost_at_s : float
+        When the track was lost, run clock, s.
+    restarted_s : float
+        When the filter started again from a GPS fix, s.
+    reason : str
+        What lost it (the covariance failure's message, or a forced loss).
+    """
+
+    lost_at_s: float
+    restarted_s: float
+    reason: str
+
+    def describe(self) -> str:
+        """``lost 200.000 s (reason), started again 200.400 s``."""
+        return (
+            f"lost {self.lost_at_s:.3f} s ({self.reason}), started again {self.restarted_s:.3f} s"
+        )
+
+
+@dataclass(frozen=True)
 class GpsUpdateResult:
     """Innovation statistics of one GPS fix: NIS of position and velocity, and acceptance.
 
@@ -236,6 +261,9 @@ class NavEstimate:
     dr_m : array (3N,) or None
         Estimated sensor-position errors ``dr_i`` (FRD, m; sensor ``i`` at
         ``3 i : 3 i + 3``) when the filter carries them (block ``dr``).
+    valid : bool
+        False after the filter started again from a lost track until its attitude's
+        1-sigma is back (:mod:`filters.recovery`).
     aoa_states : array (1-2,) or None
         The angle-of-attack block's nominal when carried (block ``aoa``): the lift
         law's offset (rad) and its ``K`` (m), or the offset alone.
@@ -265,6 +293,7 @@ class NavEstimate:
     state_blocks: tuple[tuple[str, int], ...] = NAV_BLOCKS
     dr_m: np.ndarray | None = None
     aoa_states: np.ndarray | None = None
+    valid: bool = True
 
     def __post_init__(self) -> None:
         n = sum(dof for _, dof in self.state_blocks)
@@ -316,6 +345,8 @@ class Estimates:
         The angle-of-attack estimate and its 1-sigma, rad, when the filter carries it.
     faulty_channels : array (E,) of int or None
         Each epoch's :attr:`NavEstimate.faulty_channels` bitmask (None when not kept).
+    valid : array (E,) of bool or None
+        Each epoch's :attr:`NavEstimate.valid` (None: all valid).
     """
 
     t_s: np.ndarray
@@ -329,6 +360,7 @@ class Estimates:
     aoa_rad: np.ndarray | None = None
     aoa_sigma_rad: np.ndarray | None = None
     faulty_channels: np.ndarray | None = None
+    valid: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         freeze_fields(
@@ -353,6 +385,7 @@ class Estimates:
                     e.aoa_rad,
                     e.aoa_sigma_rad,
                     e.faulty_channels,
+                    e.valid,
                 )
                 for e in epochs
             ]
@@ -407,6 +440,8 @@ class RunResult:
     faults: tuple[FaultEvent, ...] = ()
     #: Each ``rate_nis`` value's dof (fewer than ``rate_dim`` once channels are excluded).
     rate_nis_dof: np.ndarray | None = None
+    #: Each loss of the track and start again (:class:`TrackLoss`), in order.
+    track_losses: tuple[TrackLoss, ...] = ()
 
 
 @dataclass(frozen=True)

@@ -13,8 +13,9 @@ Hamilton scalar-first body-to-NED quaternion)
 - ``HEARTBEAT``: ``type`` (default ``MAV_TYPE_FIXED_WING``), ``autopilot``
   (default ``MAV_AUTOPILOT_GENERIC``), ``system_status`` ``MAV_STATE_ACTIVE``
   while estimating, ``MAV_STATE_STANDBY`` before the filter starts or when
-  the input link is silent, ``MAV_STATE_CRITICAL`` after the filter failed or while
-  a channel fails a health test.
+  the input link is silent, ``MAV_STATE_CRITICAL`` after the filter failed, while its
+  track is lost or its estimates not valid again yet, or while a channel fails a health
+  test.
 - ``SYSTEM_TIME``: ``time_boot_ms`` (run clock), ``time_unix_usec`` (the run
   clock on :data:`telemetry.tlog.EPOCH_BASE_US` in a replay, the wall clock live).
 - ``ATTITUDE_QUATERNION``: ``q1..q4`` (w, x, y, z), body rates rad/s.
@@ -39,8 +40,9 @@ Hamilton scalar-first body-to-NED quaternion)
   the joint 3-D position NIS, and ``ESTIMATOR_GPS_GLITCH`` marks a fix it
   actually rejected); ``pos_horiz_accuracy``/``pos_vert_accuracy`` 1-sigma m;
   unused ratios 0. Flags: attitude, velocity, relative position and
-  predicted position always; absolute position while GPS aided (a position
-  accepted within ``filter.gps_gap_reset_s``); GPS glitch.
+  predicted position while the estimate is valid (none in the seconds after the
+  filter started again from a lost track); absolute position while GPS aided (a
+  position accepted within ``filter.gps_gap_reset_s``); GPS glitch.
 - ``NGNAV_ARRAY_HEALTH``: the rate-product innovation and NIS, held samples,
   rejected rate updates, forecast fallbacks, the channels invalid or
   saturated in the last block, the compensation.
@@ -352,8 +354,10 @@ class EstimateEncoder:
             | mavlink.ESTIMATOR_PRED_POS_HORIZ_REL
             | mavlink.ESTIMATOR_PRED_POS_HORIZ_ABS
         )
+        if not est.valid:
+            flags = 0  # started again from a lost track: no solution to vouch for yet
         aided = est.t_s - est.t_last_position_fix_s <= self._gap_s
-        if aided:
+        if aided and est.valid:
             flags |= mavlink.ESTIMATOR_POS_HORIZ_ABS
         vel_r = pos_h = pos_v = 0.0
         if g is not None:

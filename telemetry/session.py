@@ -64,6 +64,8 @@ class Estimator(Protocol):
     method: str
     started: bool
     n_epochs: int
+    #: True while the estimator has lost its track (it starts again by itself).
+    lost: bool
     #: The innovation gate's probability (ESTIMATOR_STATUS's test ratios).
     gate_probability: float
     #: How long after an accepted GPS position an estimate counts as GPS aided, s.
@@ -232,14 +234,17 @@ class StreamSession:
         return 0 if self.latest is None else round(self.latest.t_s * 1e6)
 
     def heartbeat_message(self) -> mavlink.MAVLink_message:
-        """The HEARTBEAT message now: ``MAV_STATE_CRITICAL`` after a failure or while a
-        channel fails a health test (still navigating: ``NGNAV_ARRAY_HEALTH`` names the
-        channels), ``ACTIVE`` while the filter runs, ``STANDBY`` before."""
+        """The HEARTBEAT message now: ``MAV_STATE_CRITICAL`` after a failure, while the
+        track is lost or not valid again yet (:mod:`filters.recovery`), or while a channel
+        fails a health test (still navigating: ``NGNAV_ARRAY_HEALTH`` names the channels),
+        ``ACTIVE`` while the filter runs, ``STANDBY`` before."""
         if self.failure is not None:
             status = mavlink.MAV_STATE_CRITICAL
         elif self.estimator is not None and self.estimator.started:
             faulty = self.estimator.monitor.faulty_mask
-            status = mavlink.MAV_STATE_CRITICAL if faulty else mavlink.MAV_STATE_ACTIVE
+            invalid = self.estimator.lost or (self.latest is not None and not self.latest.valid)
+            critical = faulty or invalid
+            status = mavlink.MAV_STATE_CRITICAL if critical else mavlink.MAV_STATE_ACTIVE
         else:
             status = mavlink.MAV_STATE_STANDBY
         return self.settings.heartbeat(status)

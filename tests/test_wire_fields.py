@@ -1162,7 +1162,7 @@ ESTIMATE_HEADER = [
     "vn_mps_sigma", "ve_mps_sigma", "vd_mps_sigma",
     "att_n_rad_sigma", "att_e_rad_sigma", "att_d_rad_sigma",
     "wx_radps_sigma", "wy_radps_sigma", "wz_radps_sigma",
-    "roll_deg", "pitch_deg", "yaw_deg", "aoa_deg", "aoa_deg_sigma", "faulty_channels",
+    "roll_deg", "pitch_deg", "yaw_deg", "aoa_deg", "aoa_deg_sigma", "faulty_channels", "valid",
 ]  # fmt: skip
 
 
@@ -1180,10 +1180,10 @@ def _quat_from_euler(roll: float, pitch: float, yaw: float) -> list[float]:
 
 @pytest.mark.parametrize("with_aoa", [True, False])
 def test_estimates_csv_columns(tmp_path: Path, scenario, with_aoa: bool):
-    """estimates.csv: each of the 38 columns against its hand formula (WGS-84 lat/lon/alt,
+    """estimates.csv: each of the 39 columns against its hand formula (WGS-84 lat/lon/alt,
     sigmas sqrt(P) with lat/lon sigma = sigma_N/(M+h), sigma_E/((N+h) cos lat) in deg, ZYX
     angles and angle of attack in deg, empty angle of attack without the state, the
-    faulty-channels bitmask as an integer)."""
+    faulty-channels bitmask as an integer, valid as 1 or 0)."""
     cfg = scenario.config
     rpy = np.array([[0.1, -0.2, 2.5], [-0.3, 0.15, -1.25]])
     pos = np.array([[120.0, -340.0, -25.0], [121.5, -338.0, -24.0]])
@@ -1203,6 +1203,7 @@ def test_estimates_csv_columns(tmp_path: Path, scenario, with_aoa: bool):
         aoa_rad=aoa[0],
         aoa_sigma_rad=aoa[1],
         faulty_channels=np.array([0, 0b100100000]),
+        valid=np.array([True, False]),
     )
     write_estimates_csv(tmp_path / "est.csv", est, cfg)
     header, rows = _csv(tmp_path / "est.csv")
@@ -1229,6 +1230,7 @@ def test_estimates_csv_columns(tmp_path: Path, scenario, with_aoa: bool):
             "aoa_deg": math.degrees(aoa[0][e]) if with_aoa else math.nan,
             "aoa_deg_sigma": math.degrees(aoa[1][e]) if with_aoa else math.nan,
             "faulty_channels": [0, 288][e],
+            "valid": [1, 0][e],
         }
         assert list(exp) == ESTIMATE_HEADER
         for col in ESTIMATE_HEADER:

@@ -101,6 +101,12 @@ def print_run_summary(out: dict) -> None:
             f"{sm['rate_rms_ratio_median']:.3f} ({sm['rate_rms_ratio_max']:.3f}); "
             f"{sm['restarts']} restarts (a posterior not positive definite)"
         )
+    tl = out.get("track_losses")
+    if tl:
+        print(
+            f"  track losses: {tl['count']}; estimates valid again after "
+            f"{tl['valid_again_s_median']:.2f} s (median), {tl['valid_again_s_max']:.2f} s (worst)"
+        )
     for d in out["diverged"]:
         what = "" if d["reason"].startswith("failed:") else "diverged: "
         print(f"  run {d['run']} is left out: {what}{d['reason']}")

@@ -182,6 +182,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     _print_counts(res.counts)
     for ev in res.faults:
         print(f"  channel fault: {ev.describe()}")
+    for loss in res.track_losses:
+        print(f"  track {loss.describe()}")
     if res.smoothed is not None:
         print(f"  smoothed -> {smoothed_path(out)} (and .npz)")
     elif args.smooth and failure:

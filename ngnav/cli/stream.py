@@ -123,6 +123,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
         "input": st.counts,
         "filter": {} if st.result is None else st.result.counts,
         "faults": [] if st.result is None else [asdict(e) for e in st.result.faults],
+        "track_losses": [] if st.result is None else [asdict(e) for e in st.result.track_losses],
         "failure": st.failure,
     }
     if args.json:
@@ -139,6 +140,8 @@ def cmd_stream(args: argparse.Namespace) -> int:
             print_counts("filter", st.result.counts)
             for ev in st.result.faults:
                 print(f"  channel fault: {ev.describe()}")
+            for loss in st.result.track_losses:
+                print(f"  track {loss.describe()}")
         if st.failure:
             print(f"  filter stopped: {st.failure}")
     return 0

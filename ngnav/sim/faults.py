@@ -84,7 +84,9 @@ def parse_faults(table: object, source: str) -> tuple[ChannelFault, ...]:
         raise ValueError(f"{source}: [faults] must be a table")
     unknown = sorted(set(table) - {"inject"})
     if unknown:
-        raise ValueError(f"{source}: unknown key faults.{unknown[0]} (the section has inject)")
+        raise ValueError(
+            f"{source}: unknown key faults.{unknown[0]} (the section has inject, lose_track_at_s)"
+        )
     items = table.get("inject", [])
     if not isinstance(items, list):
         raise ValueError(f"{source}: faults.inject must be a list of tables")

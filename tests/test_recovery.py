@@ -1,0 +1,143 @@
+"""A lost track, recovered (filters.recovery): the start again's attitude, its estimates
+and what the outputs say about them, on the real filter."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from filters.evaluate import run_errors
+from filters.output import read_estimates_csv, write_estimates_csv
+from filters.pipeline import FIX_OUTCOMES, GATE_PROBABILITY, Pipeline
+from filters.recovery import RESTART_MIN_INTERVAL_S, triad
+from ngnav.errors import CovarianceError
+from ngnav.geodesy import LocalTangentPlane
+from ngnav.rotation import dcm_from_quat, quat_from_euler
+from ngnav.sim.flight_scenario import load_flight
+from ngnav.sim.simulate import simulate_flight
+from telemetry import ngnav_mavlink as mavlink
+from telemetry.outputs import EstimateEncoder, OutputSettings
+
+LOSS_S = 25.0
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_triad_puts_the_force_on_its_direction_and_levels_by_the_heading(seed):
+    """At rest (force straight up) the force and the heading fix any attitude exactly;
+    in flight the force's direction is matched exactly whatever the heading."""
+    rng = np.random.default_rng(seed)
+    roll, pitch, yaw = rng.uniform(-1.2, 1.2), rng.uniform(-1.2, 1.2), rng.uniform(-3, 3)
+    c = dcm_from_quat(quat_from_euler(roll, pitch, yaw))
+    f_n = np.array([0.0, 0.0, -9.80665])
+    np.testing.assert_allclose(triad(c.T @ f_n, f_n, yaw), c, atol=1e-12)
+    f_n = rng.normal(0.0, 5.0, 3) + np.array([0.0, 0.0, -9.8])
+    got = triad(c.T @ f_n, f_n, yaw + rng.normal(0.0, 0.3))
+    np.testing.assert_allclose(got @ c.T @ f_n, f_n, atol=1e-10)
+    np.testing.assert_allclose(got.T @ got, np.eye(3), atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def lost_run():
+    """tactical run 0 (200 Hz array) told its track is lost at 25 s, with every epoch's
+    ESTIMATOR_STATUS from the real encoder."""
+    sim = simulate_flight(load_flight("tactical", ["run.rate_hz=200"]), 0)
+    cfg = sim.config
+    ltp = LocalTangentPlane(cfg.lat0_deg, cfg.lon0_deg, cfg.alt0_m)
+    settings = OutputSettings(rates_hz={"estimator_status": 1000.0})
+    enc = EstimateEncoder(settings, ltp, GATE_PROBABILITY, 5.0, "gm11")
+    flags: list[tuple[float, bool, int]] = []
+
+    def on_epoch(est):
+        for msg in enc.epoch(est):
+            if msg.get_type() == "ESTIMATOR_STATUS":
+                flags.append((est.t_s, est.valid, msg.flags))
+
+    pipe = Pipeline(cfg, on_epoch=on_epoch, truth=sim.truth, lose_track_at_s=(LOSS_S,))
+    f = sim.fixes
+    arrival = f.t_s + f.latency_s
+    j, s = 0, sim.samples
+    for i in range(0, s.t_s.shape[0], 20):
+        while j < len(f) and arrival[j] <= s.t_s[i]:
+            pipe.push_fix(
+                f.t_s[j], f.lat_deg[j], f.lon_deg[j], f.alt_m[j], f.vel_ned_mps[j],
+                f.h_acc_m[j], f.v_acc_m[j], f.vel_acc_mps[j],
+            )  # fmt: skip
+            j += 1
+        pipe.push_samples(s.t_s[i : i + 20], s.accel_mps2[i : i + 20])
+    while j < len(f):
+        pipe.push_fix(
+            f.t_s[j], f.lat_deg[j], f.lon_deg[j], f.alt_m[j], f.vel_ned_mps[j],
+            f.h_acc_m[j], f.v_acc_m[j], f.vel_acc_mps[j],
+        )  # fmt: skip
+        j += 1
+    pipe.finish()
+    return sim, pipe.result(), flags
+
+
+def test_a_lost_track_starts_again_at_the_next_fixes_and_is_valid_within_10_s(lost_run):
+    sim, res, _ = lost_run
+    (loss,) = res.track_losses
+    assert loss.reason == "forced" and LOSS_S - 0.02 <= loss.lost_at_s <= LOSS_S
+    # two fixes at 10 Hz give the acceleration the tilt needs
+    assert 0.0 < loss.restarted_s - loss.lost_at_s <= 0.25
+    assert res.counts["track losses (filter started again)"] == 1
+    est = res.estimates
+    gap = (est.t_s > loss.lost_at_s) & (est.t_s < loss.restarted_s - 1e-9)
+    assert np.any(gap) and np.all(np.isnan(est.pos_ned_m[gap])) and not np.any(est.valid[gap])
+    after = est.t_s >= loss.restarted_s - 1e-9
+    first_valid = est.t_s[after & est.valid][0]
+    assert first_valid - loss.lost_at_s <= 10.0
+    assert np.all(est.valid[est.t_s < loss.lost_at_s])
+    assert np.all(est.valid[est.t_s >= first_valid])
+    # every fix pushed ends in one outcome, the two that started it again included
+    assert sum(res.counts[o] for o in FIX_OUTCOMES) == len(sim.fixes)
+    assert res.counts["gps fixes while the track was lost"] >= 2
+
+
+def test_after_a_start_again_the_errors_stay_inside_their_sigmas(lost_run):
+    """From 20 s after the loss every navigation error is inside 5 sigma (fixed seed)."""
+    sim, res, _ = lost_run
+    est = res.estimates
+    late = est.t_s >= LOSS_S + 20.0
+    errs = run_errors(est, sim.truth).stacked()[late]
+    sig = np.sqrt(np.einsum("eii->ei", est.cov_nav[late]))
+    assert np.all(np.abs(errs) <= 5.0 * sig)
+    # and the start again did something: the attitude's sigma came down by 10x or more
+    att_sig = np.sqrt(est.cov_nav[:, 6, 6])
+    restart = np.argmax(est.t_s >= res.track_losses[0].restarted_s - 1e-9)
+    assert att_sig[restart] > 10.0 * att_sig[late].max()
+
+
+def test_estimator_status_vouches_for_nothing_until_valid_again(lost_run):
+    _, _, flags = lost_run
+    seen = {valid for _, valid, _ in flags}
+    assert seen == {True, False}
+    for _, valid, fl in flags:
+        assert bool(fl & mavlink.ESTIMATOR_ATTITUDE) == valid
+        if not valid:
+            assert fl == 0
+
+
+def test_estimates_csv_keeps_the_lost_epochs_empty_and_not_valid(lost_run, tmp_path):
+    sim, res, _ = lost_run
+    write_estimates_csv(tmp_path / "e.csv", res.estimates, sim.config)
+    back = read_estimates_csv(tmp_path / "e.csv")
+    np.testing.assert_array_equal(back.valid, res.estimates.valid)
+    np.testing.assert_array_equal(np.isnan(back.pos_ned_m), np.isnan(res.estimates.pos_ned_m))
+
+
+def test_a_loss_soon_after_a_start_again_stops_the_run():
+    """Needing a start again within RESTART_MIN_INTERVAL_S of the last is a divergence:
+    the run stops with its estimates so far."""
+    from filters.pipeline import run_filter
+
+    sim = simulate_flight(load_flight("tactical", ["run.rate_hz=200"]), 0)
+    with pytest.raises(CovarianceError, match="lost again") as info:
+        run_filter(
+            sim.samples,
+            sim.fixes,
+            sim.config,
+            lose_track_at_s=(LOSS_S, LOSS_S + 0.5 * RESTART_MIN_INTERVAL_S),
+        )
+    assert info.value.partial is not None
+    assert len(info.value.partial.track_losses) == 1
