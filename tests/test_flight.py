@@ -251,6 +251,23 @@ def test_shipped_flights_meet_their_descriptions():
     assert np.rad2deg(tr.omega_b_rps[:, 0].max()) == pytest.approx(720.0)  # several hundred
     assert 20.0 * G0_MPS2 < np.abs(tr.f_b_mps2).max() < proj.sensor.spec().range_g * G0_MPS2
     assert tr.t_s[-1] == pytest.approx(40.0)
+    # multirotor: hovers (no motion at all), yaws in place, and loses GPS while hovering
+    mr = load_flight("multirotor")
+    tr = fly(mr.plan(), 200.0)
+    speed = np.linalg.norm(tr.vel_ned_mps, axis=1)
+    still = speed < 1e-9
+    assert np.all(np.abs(tr.omega_b_rps[still & (tr.t_s < 15.0)]) < 1e-12)
+    assert np.rad2deg(np.abs(tr.omega_b_rps[still, 2]).max()) == pytest.approx(30.0)
+    out = (tr.t_s >= mr.gps.outage_start_s) & (tr.t_s <= mr.gps.outage_start_s + mr.gps.outage_s)
+    assert mr.gps.outage_s >= 20.0 and np.all(still[out])
+    # ground vehicle: stops, and turns flat (no roll: the turn's load is sideways)
+    gv = load_flight("ground")
+    tr = fly(gv.plan(), 200.0)
+    speed = np.linalg.norm(tr.vel_ned_mps, axis=1)
+    stops = np.flatnonzero(np.diff((speed < 1e-6).astype(int)) == 1)
+    assert len(stops) >= 2  # stops after driving (the parking at the start not counted)
+    assert np.abs(np.rad2deg(tr.omega_b_rps[:, 0])).max() < 1e-9
+    assert np.abs(tr.f_b_mps2[:, 1]).max() > 2.0
 
 
 @settings(max_examples=50, deadline=None)

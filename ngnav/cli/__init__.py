@@ -48,7 +48,8 @@ def add_flight_args(p: argparse.ArgumentParser, default: str = "uav-survey") -> 
     p.add_argument(
         "--scenario",
         default=default,
-        help="shipped flight scenario (static, uav-survey, tactical, projectile) or TOML path "
+        help="shipped flight scenario (static, uav-survey, tactical, projectile, multirotor, "
+        "ground) or TOML path "
         "(default: %(default)s)",
     )
     add_set_arg(p)
