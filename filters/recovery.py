@@ -125,6 +125,8 @@ class RecoveryMixin:
                 self._fuse_fix(fix, i1, self._p_bound)
                 continue
             self.counts["gps fixes while the track was lost"] += 1
+            if self.keep_estimates:  # no innovation: the series keep one entry per fix
+                self._inn.append((fix[0], np.nan, np.nan, False, False))
             prev = self._prev_fix
             self._prev_fix = fix
             if (
@@ -133,6 +135,10 @@ class RecoveryMixin:
                 and 0.0 < fix[0] - prev[0] <= RESTART_MAX_FIX_GAP_S
             ):
                 self._start_again(fix, prev, i1)
+        if self.keep_estimates and self._nq:  # nor a rate update: the same for blocks
+            self._rate_nis.append(np.nan)
+            self._rate_nis_t.append(float(self._t[i1 - self._base]))
+            self._rate_nis_dof.append(int(self.nf.rate_rows.sum()))
         if self._lost is None:
             self._record()
         elif self.keep_estimates and self._rows:

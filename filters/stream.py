@@ -213,10 +213,14 @@ class StreamMixin:
             if self._lost is not None:
                 self._lost_block(i1)
                 continue
+            n_rate = len(self._rate_nis)
             try:
                 self._block(i1)
             except CovarianceError as exc:
                 self.lose_track(str(exc))  # raises if the last start again was too recent
+                # the failed block counts as lost: its rate update is the lost block's
+                for series in (self._rate_nis, self._rate_nis_t, self._rate_nis_dof):
+                    del series[n_rate:]
                 self._lost_block(i1)
 
     def _count_held(self, g0: int, g1: int, excluded: int) -> np.ndarray:

@@ -141,3 +141,22 @@ def test_a_loss_soon_after_a_start_again_stops_the_run():
         )
     assert info.value.partial is not None
     assert len(info.value.partial.track_losses) == 1
+
+
+def test_a_lost_run_keeps_the_series_a_campaign_averages(lost_run):
+    """Epochs, GPS innovations and rate NIS: one entry each as in the same run without the
+    loss (NaN where there was none), so Monte Carlo runs with and without losses average."""
+    from filters.pipeline import run_filter
+
+    sim, res, _ = lost_run
+    clean = run_filter(sim.samples, sim.fixes, sim.config)
+    for got, want in (
+        (res.estimates.t_s, clean.estimates.t_s),
+        (res.innovations.t_s, clean.innovations.t_s),
+        (res.rate_nis_t_s, clean.rate_nis_t_s),
+    ):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    lost = (res.innovations.t_s > res.track_losses[0].lost_at_s) & (
+        res.innovations.t_s <= res.track_losses[0].restarted_s
+    )
+    assert np.all(np.isnan(res.innovations.nis_pos[lost])) and np.any(lost)
