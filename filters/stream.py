@@ -206,7 +206,7 @@ class StreamMixin:
             if (
                 self._forced_losses
                 and self._lost is None
-                and self._t[i1 - self._base] >= (self._forced_losses[0])
+                and self._t[i1 - self._base] >= self._forced_losses[0]
             ):
                 self._forced_losses.pop(0)
                 self.lose_track("forced")

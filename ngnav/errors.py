@@ -21,9 +21,8 @@ class LostTrackError(CovarianceError):
     """The filter lost its tilt or rate again soon after it was reopened.
 
     Reopening the attitude is a recovery for a one-off loss (the end of a long
-    coast); needing it again soon after means the estimates are not coming back
-    (a broken configuration, such as no compensation of a large mounting error),
-    and carrying on would report garbage with a covariance that claims otherwise.
-    It subclasses :class:`CovarianceError`, so whatever handles a divergence
-    handles this one (``partial`` included).
+    coast); needing it again soon after means the track is lost: the pipeline then
+    starts the filter again from GPS (:mod:`filters.recovery`), and only a loss soon
+    after that start ends the run. It subclasses :class:`CovarianceError`, so whatever
+    handles a divergence handles this one (``partial`` included).
     """
