@@ -167,3 +167,38 @@ BODY_INJECTION_MAX_CURVATURE_MPS = 0.05
 #: tilt reopened) the NED error's linearisation is the better one, since the NED velocity
 #: does not depend on the attitude at all. A GPS velocity sigma (0.1 m/s).
 BODY_FRAME_MAX_CURVATURE_MPS = 0.1
+
+
+def unbiased_force_rotation(c_nb: np.ndarray, p_att: np.ndarray) -> np.ndarray:
+    """``(I - (P_att - tr(P_att) I) / 2) C_nb``: the rotation whose mean force is the truth's.
+
+    The force a vehicle makes does not depend on the filter's error, so the estimate's
+    ``C f = R(dtheta)^T f_true`` averages ``(I + (P_att - tr(P_att) I) / 2) f_true`` over
+    ``dtheta ~ N(0, P_att)``; this matrix undoes that to second order. (Reading the
+    truth as drawn about the estimate instead gives the opposite sign, which doubled a
+    hovering multirotor's vertical drift in a coast: docs/design.md, "Process model".)
+    """
+    tr = p_att[0, 0] + p_att[1, 1] + p_att[2, 2]
+    m = p_att @ c_nb
+    m *= -0.5
+    m += (1.0 + 0.5 * tr) * c_nb
+    return m
+
+
+# _UNIT_ROWS[i] = e_i [1, 1, 1]: times f, the matrix e_i f^T
+_UNIT_ROWS = np.eye(3)[:, :, None] * np.ones(3)[None, None, :]
+
+
+def force_curvature_variance(f_n: np.ndarray, p_att: np.ndarray) -> np.ndarray:
+    """Variance (3,) of each NED axis of ``b = [dtheta]x^2 f / 2`` for ``dtheta ~ N(0, P_att)``.
+
+    The attitude error's second-order action on the force ``f_n`` (NED, m/s^2):
+    ``b_i = dtheta^T M_i dtheta`` with ``M_i = (e_i f^T + f e_i^T) / 4 - f_i I / 2``,
+    and a Gaussian quadratic form's variance is ``2 tr(M_i P M_i P)``; (m/s^2)^2.
+    """
+    f = np.asarray(f_n, dtype=float)
+    m = _UNIT_ROWS * (0.25 * f)
+    m += m.transpose(0, 2, 1)
+    m -= (0.5 * f)[:, None, None] * np.eye(3)
+    mp = m @ p_att
+    return 2.0 * np.einsum("ijk,ikj->i", mp, mp)

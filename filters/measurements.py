@@ -317,4 +317,6 @@ class MeasurementsMixin:
         self._consec_vel_rejects = 0 if ok_v else self._consec_vel_rejects + 1
         if ok_p:
             self.t_last_position_fix = self.t_s
+        if ok_v:
+            self._curvature_sd_mps[:] = 0.0
         return GpsUpdateResult(nis_p, nis_v, ok_p, ok_v, nis_h, nis_vt)

@@ -10,6 +10,7 @@ from filters.algebra import (
     apply_reset_jacobian,
     attitude_reset_jacobian,
     body_velocity_reset_jacobian,
+    unbiased_force_rotation,
 )
 from filters.state import ATT, POS, RATE, VEL
 from ngnav.rotation import (
@@ -80,10 +81,8 @@ class NominalMixin:
             g_n = g_n + 0.5 * (pa @ g_n - (pa[0, 0] + pa[1, 1] + pa[2, 2]) * g_n)
             g_n = g_n - c0 @ _axial(self._rate_body_velocity_cov(c0))
         else:
-            # E[C f] = (I + (P_att - tr(P_att) I) / 2) C f  (second order in the attitude error)
-            m = pa @ c0
-            m *= 0.5
-            m += (1.0 - 0.5 * (pa[0, 0] + pa[1, 1] + pa[2, 2])) * c0
+            # a mean force equal to the truth's, to second order in the attitude error
+            m = unbiased_force_rotation(c0, pa)
         # the trapezoid's velocity increment, position increment and mean force
         # are weighted sums of a_n = m f_b0 + g over the samples
         y = (wts @ f_b0) @ m.T
@@ -241,6 +240,7 @@ class NominalMixin:
         self._consec_rejects = 0
         self._consec_vel_rejects = 0
         self.t_last_position_fix = self.t_s
+        self._curvature_sd_mps[:] = 0.0
         self.check_covariance("GPS reset")
 
     def set_heading(self, yaw_rad: float, sigma_rad: float) -> None:

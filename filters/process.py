@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import predict as kf_predict
 
+from filters.algebra import force_curvature_variance
 from filters.state import ATT, N_NAV, POS, RATE, VEL
 from ngnav.rotation import (
     dcm_from_quat,
@@ -22,7 +23,36 @@ class ProcessMixin:
         if self.lag is not None:
             self.lag.start(self.P, phi)
         self.x, self.P = kf_predict(self.x, self.P, phi, q)
+        self._add_curvature_noise(k * dt, f_n)
         self._symmetrise()
+
+    def _add_curvature_noise(self, t_s: float, f_n: np.ndarray) -> None:
+        """The attitude error's second-order action on the force, as a random constant.
+
+        The truth's force is ``R(dtheta) C f``; the transition keeps its first order and
+        the nominal its mean, which leaves ``b = [dtheta]x^2 f / 2`` less its mean. In a
+        long coast of a free vehicle (a multirotor's hover, a car in a tunnel) the tilt
+        grows to ten degrees and the heading to tens, and ``b`` reaches 0.1-0.4 m/s^2;
+        without it the vertical velocity, tied to the tilt only through the estimate's
+        tilted force, was held to centimetres per second while it drifted by metres
+        (docs/design.md, "Process model"). Its variance is
+        :func:`filters.algebra.force_curvature_variance`. The tilt changes slowly, so
+        ``b`` is carried as a constant: each NED axis's 1-sigma velocity error from it
+        grows by ``sd(b_i) t`` a block, from zero at the last GPS velocity that passed
+        its gate.
+        Not carried while the velocity error is in the body frame (the attitude is then
+        known to a few degrees and ``b`` is negligible).
+        """
+        acc = self._curvature_sd_mps
+        if self.in_body_frame():
+            acc[:] = 0.0
+            return
+        var_b = force_curvature_variance(f_n, self.P[ATT, ATT])
+        new = acc + np.sqrt(np.maximum(var_b, 0.0)) * t_s
+        d = new * new - acc * acc
+        acc[:] = new
+        v = self.P[VEL, VEL]
+        v[np.diag_indices(3)] += d
 
     def propagation_matrices(
         self,
