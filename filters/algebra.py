@@ -169,22 +169,6 @@ BODY_INJECTION_MAX_CURVATURE_MPS = 0.05
 BODY_FRAME_MAX_CURVATURE_MPS = 0.1
 
 
-def unbiased_force_rotation(c_nb: np.ndarray, p_att: np.ndarray) -> np.ndarray:
-    """``(I - (P_att - tr(P_att) I) / 2) C_nb``: the rotation whose mean force is the truth's.
-
-    The force a vehicle makes does not depend on the filter's error, so the estimate's
-    ``C f = R(dtheta)^T f_true`` averages ``(I + (P_att - tr(P_att) I) / 2) f_true`` over
-    ``dtheta ~ N(0, P_att)``; this matrix undoes that to second order. (Reading the
-    truth as drawn about the estimate instead gives the opposite sign, which doubled a
-    hovering multirotor's vertical drift in a coast: docs/design.md, "Process model".)
-    """
-    tr = p_att[0, 0] + p_att[1, 1] + p_att[2, 2]
-    m = p_att @ c_nb
-    m *= -0.5
-    m += (1.0 + 0.5 * tr) * c_nb
-    return m
-
-
 # _UNIT_ROWS[i] = e_i [1, 1, 1]: times f, the matrix e_i f^T
 _UNIT_ROWS = np.eye(3)[:, :, None] * np.ones(3)[None, None, :]
 

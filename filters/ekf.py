@@ -370,7 +370,7 @@ class NavFilter(
         self.x = np.zeros(self.layout.n)
         self.t_last_position_fix = self.t_s
         # 1-sigma NED velocity error of the force's second-order part since the last
-        # GPS velocity (ProcessMixin._add_curvature_noise)
+        # velocity measurement (ProcessMixin._add_curvature_noise)
         self._curvature_sd_mps = np.zeros(3)
         # the hold starts at the vehicle models' first update (current_remainder_updates)
         self._handover_until = -np.inf

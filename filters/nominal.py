@@ -10,7 +10,6 @@ from filters.algebra import (
     apply_reset_jacobian,
     attitude_reset_jacobian,
     body_velocity_reset_jacobian,
-    unbiased_force_rotation,
 )
 from filters.state import ATT, POS, RATE, VEL
 from ngnav.rotation import (
@@ -81,8 +80,12 @@ class NominalMixin:
             g_n = g_n + 0.5 * (pa @ g_n - (pa[0, 0] + pa[1, 1] + pa[2, 2]) * g_n)
             g_n = g_n - c0 @ _axial(self._rate_body_velocity_cov(c0))
         else:
-            # a mean force equal to the truth's, to second order in the attitude error
-            m = unbiased_force_rotation(c0, pa)
+            # E[C f] = (I + (P_att - tr(P_att) I) / 2) C f  (second order in the attitude
+            # error, about the estimate: the transition's -[f_n]x is built on this force;
+            # the truth's-force sign, tried, was worse: docs/design.md, "Process model")
+            m = pa @ c0
+            m *= 0.5
+            m += (1.0 - 0.5 * (pa[0, 0] + pa[1, 1] + pa[2, 2])) * c0
         # the trapezoid's velocity increment, position increment and mean force
         # are weighted sums of a_n = m f_b0 + g over the samples
         y = (wts @ f_b0) @ m.T

@@ -607,14 +607,13 @@ def test_trapezoid_is_exact_for_constant_angular_acceleration():
 
 def test_trapezoid_is_exact_for_constant_specific_force():
     """Without rotation a constant force gives v = a t and p = a t^2 / 2 exactly, in any block
-    size, with ``a = (I - (P_att - tr(P_att) I) / 2) C f + g`` (the attitude error's mean,
-    :func:`filters.algebra.unbiased_force_rotation`)."""
+    size, with ``a = (I + (P_att - tr(P_att) I) / 2) C f + g`` (the attitude error's mean)."""
     nf, _, _ = _filter()
     f_b = np.array([1.2, -0.4, -9.0])
     dt = 1e-3
     c = dcm_from_quat(nf.q)
     pa = nf.P[ATT, ATT]
-    a = (np.eye(3) - 0.5 * (pa - np.trace(pa) * np.eye(3))) @ c @ f_b + gravity_n_mps2()
+    a = (np.eye(3) + 0.5 * (pa - np.trace(pa) * np.eye(3))) @ c @ f_b + gravity_n_mps2()
     nf.set_last_sample(np.zeros(3), f_b)
     nf.vel = np.array([12.0, -3.0, 0.5])
     pos0, vel0 = nf.pos.copy(), nf.vel.copy()
