@@ -60,6 +60,37 @@ class FilterBench:
         """Pipeline time over bare-loop time: the median of the ratios of the repeats' pairs."""
         return statistics.median(p / b for p, b in zip(self.pipeline_s, self.bare_s, strict=True))
 
+    @property
+    def pipeline_step_us(self) -> float:
+        """Median microseconds per filter step (one block and its share of the GPS fixes)."""
+        return 1e6 * statistics.median(self.pipeline_s) / self.blocks
+
+    @property
+    def bare_step_us(self) -> float:
+        """The bare loop's median microseconds per step."""
+        return 1e6 * statistics.median(self.bare_s) / self.blocks
+
+    def as_dict(self) -> dict:
+        """The figures as plain numbers (``ngnav bench-filter --json``)."""
+        return {
+            "scenario": self.scenario,
+            "samples": self.samples,
+            "blocks": self.blocks,
+            "gps_fixes": self.gps_fixes,
+            "state_size": self.state_size,
+            "array_rate_hz": self.array_rate_hz,
+            "filter_rate_hz": self.filter_rate_hz,
+            "gps_rate_hz": self.gps_rate_hz,
+            "pipeline_samples_per_s": self.pipeline_samples_per_s,
+            "bare_samples_per_s": self.bare_samples_per_s,
+            "pipeline_real_time_factor": self.pipeline_samples_per_s / self.array_rate_hz,
+            "pipeline_step_us": self.pipeline_step_us,
+            "bare_step_us": self.bare_step_us,
+            "pipeline_over_bare": self.slowdown,
+            "pipeline_s": list(self.pipeline_s),
+            "bare_s": list(self.bare_s),
+        }
+
 
 def _first_seconds(samples: ArraySamples, fixes: GpsFixes, seconds: float):
     n = int(np.searchsorted(samples.t_s, samples.t_s[0] + seconds, side="right"))

@@ -171,32 +171,32 @@ class ChannelMonitor:
         a = np.asarray(raw_mps2, dtype=float).reshape(k, self.n_channels)
         ext = np.vstack([self._prev, a])  # the two carried readings first
         if k > 1:
-            self._dt = float(np.median(np.diff(t)))
+            self._dt = _median(np.diff(t))
         elif np.isfinite(self._t_last):
             self._dt = float(t[0] - self._t_last)
         self._t_last = float(t[-1])
         dt = self._dt if np.isfinite(self._dt) else 0.0
-        idx = np.arange(k)
-        # -- flat line: repeats of the previous reading (NaN never repeats)
+        # -- flat line: repeats of the previous reading (NaN never repeats), all channels
+        idx = np.arange(k)[:, None]
         same = ext[2:] == ext[1:-1]
-        for c in range(self.n_channels):
-            last_break = np.maximum.accumulate(np.where(same[:, c], -1, idx))
-            run = np.where(last_break >= 0, idx - last_break, self._run[c] + idx + 1)
-            self._run[c] = run[-1]
-            flat_now = run + 1 >= FLAT_RUN
-            was = self._flat[c]
-            # each rise of the flat flag is an alarm (the first one opens the event)
-            rises = np.flatnonzero(flat_now & ~np.concatenate([[was], flat_now[:-1]]))
-            for kh in rises.tolist():
-                value = a[kh, c]
-                if value == 0.0:
-                    kind = "dead"
-                elif abs(value) >= self.range_mps2 * (1 - 1e-9):
-                    kind = "saturated"
-                else:
-                    kind = "stuck"
-                self._isolate(c, kind, float(t[kh]), float(t[kh]) - (FLAT_RUN - 1) * dt)
-            self._flat[c] = bool(flat_now[-1])
+        last_break = np.maximum.accumulate(np.where(same, -1, idx), axis=0)
+        run = np.where(last_break >= 0, idx - last_break, self._run + idx + 1)
+        self._run = run[-1].copy()
+        flat_now = run + 1 >= FLAT_RUN
+        # each rise of the flat flag is an alarm (the first one opens the event)
+        rises = flat_now.copy()
+        rises[0] &= ~self._flat
+        rises[1:] &= ~flat_now[:-1]
+        for c, kh in np.argwhere(rises.T).tolist():  # by channel, then time
+            value = a[kh, c]
+            if value == 0.0:
+                kind = "dead"
+            elif abs(value) >= self.range_mps2 * (1 - 1e-9):
+                kind = "saturated"
+            else:
+                kind = "stuck"
+            self._isolate(c, kind, float(t[kh]), float(t[kh]) - (FLAT_RUN - 1) * dt)
+        self._flat = flat_now[-1].copy()
         # -- noise level: the median square of second differences over whole windows
         d2 = ext[2:] - 2.0 * ext[1:-1] + ext[:-2]
         k0 = 0
@@ -208,9 +208,13 @@ class ChannelMonitor:
             if self._win_n < NOISE_WINDOW:
                 break
             self._win_n = 0
-            with np.errstate(all="ignore"), warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN channel
-                ratio = np.nanmedian(self._win * self._win, axis=0) / self._d2_median
+            sq = self._win * self._win
+            if np.isnan(sq).any():
+                with np.errstate(all="ignore"), warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN channel
+                    ratio = np.nanmedian(sq, axis=0) / self._d2_median
+            else:  # the same value, without nanmedian's masked-array detour
+                ratio = np.median(sq, axis=0) / self._d2_median
             noisy = ratio > NOISY_RATIO
             onset = float(t[k1 - 1]) - (NOISE_WINDOW - 1) * dt
             for c in np.flatnonzero(noisy & ~self._noisy).tolist():
@@ -281,3 +285,11 @@ class ChannelMonitor:
             return
         self.events.append(FaultEvent((channel + 1,), kind, t_s, t_s))
         self._open[channel] = len(self.events) - 1
+
+
+def _median(x: np.ndarray) -> float:
+    """``np.median`` of a short 1-D array without its general machinery (same value)."""
+    n = x.shape[0]
+    y = np.sort(x)
+    h = n // 2
+    return float(y[h]) if n % 2 else float((y[h - 1] + y[h]) / 2.0)

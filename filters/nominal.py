@@ -13,6 +13,7 @@ from filters.algebra import (
 )
 from filters.state import ATT, POS, RATE, VEL
 from ngnav.rotation import (
+    cross3,
     cross_rows,
     dcm_from_quat,
     euler_from_quat,
@@ -187,9 +188,7 @@ class NominalMixin:
         )
         if body:
             # the body velocity takes the correction and the corrected attitude carries it
-            self.vel = dcm_from_quat(quat_from_rotvec(dth)) @ (
-                v_old + dx[VEL] + np.cross(v_old, dth)
-            )
+            self.vel = dcm_from_quat(quat_from_rotvec(dth)) @ (v_old + dx[VEL] + cross3(v_old, dth))
         else:
             self.vel = v_old + dx[VEL]
         self.q = quat_rotate_by_rotvec(self.q, dth, left=True)

@@ -71,6 +71,17 @@ def test_bench_filter_command():
     assert ratio > 1.0  # the pipeline does more than filterpy's bare predict/update
     proc = run("bench-filter", "--scenario", "static", "--seconds", "5", check=False)
     assert proc.returncode == 2 and "hold no filter block" in proc.stderr
+    js = json.loads(
+        run(
+            "bench-filter", "--scenario", "tactical", "--seconds", "2", "--repeats", "3", "--json"
+        ).stdout
+    )
+    assert js["blocks"] == 200 and abs(js["samples"] - 2000) <= 1 and len(js["pipeline_s"]) == 3
+    med = sorted(js["pipeline_s"])[1]
+    assert js["pipeline_step_us"] == pytest.approx(1e6 * med / 200)
+    assert js["pipeline_samples_per_s"] == pytest.approx(js["samples"] / med)
+    ratios = sorted(p / b for p, b in zip(js["pipeline_s"], js["bare_s"], strict=True))
+    assert js["pipeline_over_bare"] == pytest.approx(ratios[1])
 
 
 def test_a_free_body_runs_without_a_vehicle_model(tmp_path):

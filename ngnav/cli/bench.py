@@ -26,6 +26,11 @@ def cmd_bench_filter(args: argparse.Namespace) -> int:
     from filters.bench import run_filter_bench
 
     b = run_filter_bench(flight_scenario(args), seconds=args.seconds, repeats=args.repeats)
+    if args.json:
+        import json
+
+        print(json.dumps(b.as_dict(), indent=2))
+        return 0
     print(
         f"{b.scenario}: first {args.seconds:g} s, {b.samples} samples at {b.array_rate_hz:g} Hz, "
         f"filter at {b.filter_rate_hz:g} Hz ({b.blocks} blocks), {b.gps_fixes} GPS fixes at "
@@ -39,6 +44,9 @@ def cmd_bench_filter(args: argparse.Namespace) -> int:
     print(
         f"  bare filterpy loop {b.bare_samples_per_s:10,.0f} samples/s "
         f"({b.bare_samples_per_s / rt:6.1f}x real time)"
+    )
+    print(
+        f"  per filter step    {b.pipeline_step_us:10,.0f} us (bare loop {b.bare_step_us:,.0f} us)"
     )
     print(f"  pipeline / bare loop time: {b.slowdown:.2f}x")
     print("  pipeline runs (s): " + ", ".join(f"{t:.2f}" for t in b.pipeline_s))
@@ -60,4 +68,7 @@ def add_parsers(sub) -> None:
         "--seconds", type=float, default=120.0, help="flight seconds timed (default: %(default)s)"
     )
     p.add_argument("--repeats", type=int, default=5)
+    p.add_argument(
+        "--json", action="store_true", help="print the figures as JSON, to compare machines"
+    )
     p.set_defaults(func=cmd_bench_filter)
