@@ -169,20 +169,18 @@ BODY_INJECTION_MAX_CURVATURE_MPS = 0.05
 BODY_FRAME_MAX_CURVATURE_MPS = 0.1
 
 
-# _UNIT_ROWS[i] = e_i [1, 1, 1]: times f, the matrix e_i f^T
-_UNIT_ROWS = np.eye(3)[:, :, None] * np.ones(3)[None, None, :]
-
-
 def force_curvature_variance(f_n: np.ndarray, p_att: np.ndarray) -> np.ndarray:
     """Variance (3,) of each NED axis of ``b = [dtheta]x^2 f / 2`` for ``dtheta ~ N(0, P_att)``.
 
     The attitude error's second-order action on the force ``f_n`` (NED, m/s^2):
     ``b_i = dtheta^T M_i dtheta`` with ``M_i = (e_i f^T + f e_i^T) / 4 - f_i I / 2``,
-    and a Gaussian quadratic form's variance is ``2 tr(M_i P M_i P)``; (m/s^2)^2.
+    and a Gaussian quadratic form's variance is ``2 tr(M_i P M_i P)``, which expands to
+    ``(u_i^2 + (f.u) P_ii) / 4 + f_i^2 |P|_F^2 / 2 - f_i (P u)_i`` with ``u = P f``;
+    (m/s^2)^2.
     """
     f = np.asarray(f_n, dtype=float)
-    m = _UNIT_ROWS * (0.25 * f)
-    m += m.transpose(0, 2, 1)
-    m -= (0.5 * f)[:, None, None] * np.eye(3)
-    mp = m @ p_att
-    return 2.0 * np.einsum("ijk,ikj->i", mp, mp)
+    u = p_att @ f
+    pu = p_att @ u
+    return 0.25 * (u * u + float(f @ u) * np.diagonal(p_att)) + f * (
+        0.5 * float(np.sum(p_att * p_att)) * f - pu
+    )
