@@ -275,7 +275,12 @@ class EstimateEncoder:
         ms = _ms(t_us)
         out: list[mavlink.MAVLink_message] = []
         if self._due("heartbeat", t_us):
-            out.append(self.settings.heartbeat(mavlink.MAV_STATE_ACTIVE))
+            # the epoch's own state: not valid (a lost track, a start again not yet
+            # trusted) or a channel failing a health test is CRITICAL, as a live link's
+            # idle heartbeat says (telemetry.session.StreamSession.heartbeat_message)
+            ok = est.valid and not est.faulty_channels
+            status = mavlink.MAV_STATE_ACTIVE if ok else mavlink.MAV_STATE_CRITICAL
+            out.append(self.settings.heartbeat(status))
         if self._due("system_time", t_us):
             unix = EPOCH_BASE_US + t_us if unix_usec is None else int(unix_usec)
             out.append(mavlink.MAVLink_system_time_message(unix, ms))

@@ -24,7 +24,7 @@ from filters.output import ESTIMATE_COLUMNS
 from telemetry import ngnav_mavlink as mavlink
 from telemetry.frames import FrameDecoder
 from telemetry.live import free_udp_port
-from telemetry.tlog import read_tlog
+from telemetry.tlog import EPOCH_BASE_US, read_tlog
 
 ROOT = Path(__file__).resolve().parents[1]
 NGNAV = [sys.executable, "-m", "ngnav.cli"]
@@ -200,6 +200,17 @@ def test_a_dead_channel_is_reported_live(live_run):
     live = np.loadtxt(tmp / "live.csv", delimiter=",", skiprows=1)
     col = ESTIMATE_COLUMNS.index("faulty_channels")
     assert np.all(live[live[:, 0] > 30.015, col] == 1 << 5)
+    # the heartbeat says so: ACTIVE while every channel is healthy, CRITICAL after
+    hb = [
+        ((t_us - EPOCH_BASE_US) * 1e-6, m.system_status)
+        for t_us, m in read_tlog(tmp / "live.tlog", FrameDecoder())
+        if m.get_type() == "HEARTBEAT"
+    ]
+    first_est = live[0, 0]
+    before = [st for t, st in hb if first_est < t < 29.99]
+    after = [st for t, st in hb if t > 30.02]
+    assert before and set(before) == {mavlink.MAV_STATE_ACTIVE}
+    assert after and set(after) == {mavlink.MAV_STATE_CRITICAL}
 
 
 def test_common_only_client_sees_every_estimate_frame_of_the_vehicle(live_run):

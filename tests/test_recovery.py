@@ -3,6 +3,10 @@ and what the outputs say about them, on the real filter."""
 
 from __future__ import annotations
 
+import socket
+import threading
+import time
+
 import numpy as np
 import pytest
 
@@ -160,3 +164,75 @@ def test_a_lost_run_keeps_the_series_a_campaign_averages(lost_run):
         res.innovations.t_s <= res.track_losses[0].restarted_s
     )
     assert np.all(np.isnan(res.innovations.nis_pos[lost])) and np.any(lost)
+
+
+def test_a_lost_track_is_reported_on_the_live_link():
+    """Over real loopback UDP (``telemetry.live.serve``): tactical's first 40 s at 10x real
+    time, its track lost at 25 s. Every HEARTBEAT goes CRITICAL with the epoch's
+    ESTIMATOR_STATUS vouching for nothing, and ACTIVE again once it vouches again."""
+    from filters.bench import _first_seconds
+    from telemetry.inputs import input_frames
+    from telemetry.live import Endpoint, free_udp_port, play_frames, serve
+    from telemetry.tlog import FrameWriter, frames_of
+
+    sim = simulate_flight(load_flight("tactical", ["run.rate_hz=200"]), 0)
+    samples, fixes = _first_seconds(sim.samples, sim.fixes, 40.0)
+    frames = list(frames_of(input_frames(samples, fixes, sim.config), FrameWriter()))
+    p_in, p_out = free_udp_port(), free_udp_port()
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", p_out))
+    rx.settimeout(0.2)
+    got: list[bytes] = []
+    done = threading.Event()
+
+    def receive() -> None:
+        while not done.is_set():
+            try:
+                got.append(rx.recv(65536))
+            except TimeoutError:
+                pass
+
+    def ready() -> None:
+        dest = Endpoint("udpout", "127.0.0.1", p_in)
+        threading.Thread(target=play_frames, args=(frames, dest, 10.0), daemon=True).start()
+
+    def factory(cfg, on_epoch):
+        return Pipeline(cfg, on_epoch=on_epoch, lose_track_at_s=(LOSS_S,))
+
+    settings = OutputSettings(rates_hz={"heartbeat": 20.0, "estimator_status": 20.0})
+    th = threading.Thread(target=receive)
+    th.start()
+    try:
+        stats = serve(
+            Endpoint("udpin", "127.0.0.1", p_in),
+            Endpoint("udpout", "127.0.0.1", p_out),
+            factory,
+            settings,
+            idle_exit_s=1.0,
+            duration_s=120.0,
+            ready=ready,
+        )
+    finally:
+        time.sleep(0.3)
+        done.set()
+        th.join()
+        rx.close()
+    assert "filter failed" not in stats.counts
+    mav = mavlink.MAVLink(None)
+    msgs = [m for d in got for m in (mav.parse_buffer(d) or [])]
+    # each epoch's HEARTBEAT comes before its ESTIMATOR_STATUS (both due at 20 Hz)
+    pairs, hb = [], None
+    for m in msgs:
+        if m.get_type() == "HEARTBEAT":
+            hb = m.system_status
+        elif m.get_type() == "ESTIMATOR_STATUS" and hb is not None:
+            pairs.append((m.time_usec * 1e-6, hb, m.flags))
+            hb = None
+    t = np.array([p[0] for p in pairs])
+    status = np.array([p[1] for p in pairs])
+    vouched = np.array([p[2] != 0 for p in pairs])
+    assert t.min() < LOSS_S - 5.0 and t.max() > LOSS_S + 10.0
+    lost = ~vouched & (t > LOSS_S - 0.1)
+    assert np.any(lost) and np.all(status[lost] == mavlink.MAV_STATE_CRITICAL)
+    assert np.all(status[vouched] == mavlink.MAV_STATE_ACTIVE)
+    assert vouched[-1] and np.all(vouched[(t > 5.0) & (t < LOSS_S - 0.1)])

@@ -161,6 +161,7 @@ class EpochRecord:
     rate_rejected: int
     fallbacks: int
     faulty: int
+    valid: bool = True
     unix_usec: int | None = None
     frames: dict[str, bytes] = field(default_factory=dict)
     default_rate_types: list[str] = field(default_factory=list)
@@ -195,6 +196,7 @@ def _snapshot(obj: NavEstimate) -> EpochRecord:
         rate_rejected=obj.rate_updates_rejected,
         fallbacks=obj.forecast_fallbacks,
         faulty=obj.faulty_channels,
+        valid=bool(obj.valid),
     )
 
 
@@ -289,8 +291,11 @@ def test_estimate_frames_carry_the_sender_ids_and_a_running_sequence(epochs):
 
 
 def test_heartbeat_fields(epochs):
-    """HEARTBEAT while estimating: the configured type/autopilot, MAV_STATE_ACTIVE, version 3."""
-    for _, fr in _all_frames(epochs, "HEARTBEAT"):
+    """HEARTBEAT while estimating: the configured type/autopilot, version 3; the epoch's
+    state: MAV_STATE_ACTIVE, or CRITICAL while its estimate is not valid yet (converging)
+    or a channel fails a health test."""
+    seen = set()
+    for r, fr in _all_frames(epochs, "HEARTBEAT"):
         m = decode_common(fr)
         assert (m.type, m.autopilot, m.base_mode, m.custom_mode) == (
             MAV_TYPE_QUADROTOR,
@@ -298,8 +303,12 @@ def test_heartbeat_fields(epochs):
             0,
             0,
         )
-        assert (m.system_status, m.mavlink_version) == (MAV_STATE_ACTIVE, 3)
+        ok = r.valid and not r.faulty
+        want = MAV_STATE_ACTIVE if ok else MAV_STATE_CRITICAL
+        assert (m.system_status, m.mavlink_version) == (want, 3)
         assert (m.get_srcSystem(), m.get_srcComponent()) == (7, 42)
+        seen.add(m.system_status)
+    assert MAV_STATE_ACTIVE in seen
 
 
 def test_system_time_fields(epochs):
@@ -498,7 +507,8 @@ def test_hand_built_estimate_to_literal_wire_values(scenario):
     frames = {m.get_type(): w.pack(m) for m in enc.epoch(_hand_estimate())}
     assert len(frames) == 9
     m = decode_common(frames["HEARTBEAT"])
-    assert (m.type, m.autopilot, m.system_status) == (1, 0, MAV_STATE_ACTIVE)  # fixed wing
+    # fixed wing; CRITICAL: the estimate marks channels 1, 3 and 9 faulty
+    assert (m.type, m.autopilot, m.system_status) == (1, 0, MAV_STATE_CRITICAL)
     m = decode_common(frames["SYSTEM_TIME"])
     assert (m.time_boot_ms, m.time_unix_usec) == (12_345, EPOCH_2026_US + 12_345_678)
     m = decode_common(frames["ATTITUDE"])
