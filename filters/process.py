@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import predict as kf_predict
 
-from filters.algebra import force_curvature_variance
+from filters.algebra import force_curvature_variance, shrink_to_size
 from filters.state import ATT, N_NAV, POS, RATE, VEL
 from ngnav.rotation import (
     dcm_from_quat,
@@ -19,12 +19,27 @@ class ProcessMixin:
     def _predict_covariance(
         self, k: int, dt: float, c: np.ndarray, f_n: np.ndarray, sg: np.ndarray | None
     ) -> None:
-        phi, q = self.propagation_matrices(k, dt, c, f_n, sg)
+        phi, q = self.propagation_matrices(k, dt, c, self.force_for_jacobian(f_n), sg)
         if self.lag is not None:
             self.lag.start(self.P, phi)
         self.x, self.P = kf_predict(self.x, self.P, phi, q)
         self._add_curvature_noise(k * dt, f_n)
         self._symmetrise()
+
+    def force_for_jacobian(self, f_n: np.ndarray) -> np.ndarray:
+        """The block's mean force (NED, m/s^2) as the transition's ``-[f_n]x`` reads it.
+
+        The estimate's force is the truth's turned by the attitude error, ``dtheta x f``
+        (variance ``diag([f]x P_att [f]x^T)``); each component is shrunk to its unbiased
+        size (:func:`filters.algebra.shrink_to_size`, errors in variables, as the rate
+        products' Jacobian). In a coast of a free vehicle the tilt error alone tilts the
+        force: read as it is, a hover's force made a heading error move the horizontal
+        velocity and a tilt error the vertical, and the returning fixes turned the heading
+        the wrong way (`multirotor`: attitude inside its band on 86.4 % of epochs, 92.9 %
+        so; docs/design.md, "Process model").
+        """
+        sf = skew(f_n)
+        return shrink_to_size(f_n, np.diagonal(sf @ self.P[ATT, ATT] @ sf.T))
 
     def _add_curvature_noise(self, t_s: float, f_n: np.ndarray) -> None:
         """The attitude error's second-order action on the force, as a random constant.

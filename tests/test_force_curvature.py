@@ -5,6 +5,7 @@ then moves by the exact rotation's second order, which these tests sample.
 """
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from filters.algebra import force_curvature_variance
@@ -71,3 +72,32 @@ def test_filter_carries_the_curvature_as_a_constant_until_a_gps_velocity():
     assert sd[2] > 0.1  # m/s^2: g |dtheta_h|^2 / 2 at these tilts
     nf.update_gps(nf.pos.copy(), nf.vel.copy(), np.full(3, 1.0), 0.1)
     assert not np.any(nf._curvature_sd_mps)
+
+
+def test_the_transitions_force_is_shrunk_by_the_tilts_uncertainty():
+    """A hover whose estimate is tilted 3 deg by its own error, tilt 10 deg uncertain: the
+    horizontal force the transition reads is zero (the tilt alone explains it) and the
+    vertical is kept; a 3 m/s^2 turn with the tilt known to 0.3 deg keeps its force but
+    for the unbiased shrink. ``var_i`` written out for a diagonal ``P``:
+    ``var_x = f_z^2 P_yy + f_y^2 P_zz`` and its cyclic permutations."""
+    nf, _, _ = level_filter()
+    g = 9.80665
+    f_hover = np.array([g * np.sin(np.radians(3.0)), 0.0, -g * np.cos(np.radians(3.0))])
+    nf.P[ATT, ATT] = np.diag(np.radians([10.0, 10.0, 30.0]) ** 2)
+    got = nf.force_for_jacobian(f_hover)
+    assert got[0] == 0.0 and got[1] == 0.0
+    p = np.diagonal(nf.P[ATT, ATT])
+    var_z = f_hover[1] ** 2 * p[0] + f_hover[0] ** 2 * p[1]
+    assert got[2] == pytest.approx(-np.sqrt(f_hover[2] ** 2 - var_z), rel=1e-12)
+    f_turn = np.array([3.0, -1.0, -9.9])
+    nf.P[ATT, ATT] = np.diag(np.radians([0.3, 0.3, 2.0]) ** 2)
+    p = np.diagonal(nf.P[ATT, ATT])
+    var = np.array(
+        [
+            f_turn[2] ** 2 * p[1] + f_turn[1] ** 2 * p[2],
+            f_turn[2] ** 2 * p[0] + f_turn[0] ** 2 * p[2],
+            f_turn[1] ** 2 * p[0] + f_turn[0] ** 2 * p[1],
+        ]
+    )
+    want = np.sign(f_turn) * np.sqrt(f_turn**2 - var)
+    np.testing.assert_allclose(nf.force_for_jacobian(f_turn), want, rtol=1e-12)
