@@ -10,6 +10,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from filters import kernels
 from filters.state import ATT, RATE, VEL
 from ngnav.rotation import skew
 
@@ -115,20 +116,12 @@ def apply_reset_jacobian(
     rows ``ga`` (:func:`attitude_reset_jacobian`) and, with the body-frame velocity error,
     the velocity rows ``gvv``, ``gvt`` (:func:`body_velocity_reset_jacobian`). Returns a
     new symmetric array."""
-    p = np.array(p, dtype=float)
-    if gvv is not None:
-        rows_v = p[VEL, :].copy()
-        rows_t = p[ATT, :].copy()
-        p[VEL, :] = gvv @ rows_v + gvt @ rows_t
-        p[ATT, :] = ga @ rows_t
-        cols_v = p[:, VEL].copy()
-        cols_t = p[:, ATT].copy()
-        p[:, VEL] = cols_v @ gvv.T + cols_t @ gvt.T
-        p[:, ATT] = cols_t @ ga.T
-    else:
-        p[ATT, :] = ga @ p[ATT, :]
-        p[:, ATT] = p[:, ATT] @ ga.T
-    return 0.5 * (p + p.T)
+    if gvv is None:
+        gvv = gvt = _NO_ROWS
+    return kernels.reset_rows(np.asarray(p, dtype=float), ga, gvv, gvt, ATT.start, VEL.start)
+
+
+_NO_ROWS = np.zeros((0, 0))  # kernels.reset_rows: no velocity rows
 
 
 def ned_velocity_curvature(vel_ned_mps: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

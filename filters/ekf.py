@@ -40,7 +40,7 @@ from filters.noise import FilterNoise
 from filters.nominal import NominalMixin
 from filters.process import ProcessMixin
 from filters.remainder import RemainderMixin
-from filters.state import ATT, N_NAV, POS, RATE, VEL, StateLayout
+from filters.state import ATT, POS, RATE, VEL, StateLayout
 from filters.supervision import Counters, SupervisionMixin
 from filters.updates import Measurement, update_correlated
 from filters.vehicle_model import (
@@ -291,7 +291,6 @@ class NavFilter(
         self._lift_dw = 0.0  # dw/dV of the lift-off blend, s/m
         # the load's sensitivity to the sensor positions (3, 3N), with DR states
         self._lift_sg_f: np.ndarray | None = None
-        self._eye = np.eye(n)
         self._eye3 = np.eye(3)
         self._g = gravity_n_mps2()
         self._consec_rejects = 0
@@ -306,8 +305,6 @@ class NavFilter(
         #: sets it): the propagation then gives the rate one block's own noise
         #: (FilterNoise.block_wdot_cov), not the loop's
         self.rate_reset_each_block = False
-        self._t12 = np.eye(12)
-        self._eye12 = np.eye(N_NAV)
         #: Which rate products measure the rate (nq,): all of them until channels are
         #: excluded (:meth:`set_solve`).
         self.rate_rows = np.ones(self.layout.nq, dtype=bool)

@@ -39,6 +39,7 @@ import warnings
 
 import numpy as np
 
+from filters import kernels
 from ngnav.records import FaultEvent
 
 #: Identical consecutive readings that make a flat line (probability < 1e-13 per run
@@ -169,25 +170,19 @@ class ChannelMonitor:
         if k == 0:
             return
         a = np.asarray(raw_mps2, dtype=float).reshape(k, self.n_channels)
-        ext = np.vstack([self._prev, a])  # the two carried readings first
         if k > 1:
             self._dt = _median(np.diff(t))
         elif np.isfinite(self._t_last):
             self._dt = float(t[0] - self._t_last)
         self._t_last = float(t[-1])
         dt = self._dt if np.isfinite(self._dt) else 0.0
-        # -- flat line: repeats of the previous reading (NaN never repeats), all channels
-        idx = np.arange(k)[:, None]
-        same = ext[2:] == ext[1:-1]
-        last_break = np.maximum.accumulate(np.where(same, -1, idx), axis=0)
-        run = np.where(last_break >= 0, idx - last_break, self._run + idx + 1)
-        self._run = run[-1].copy()
-        flat_now = run + 1 >= FLAT_RUN
-        # each rise of the flat flag is an alarm (the first one opens the event)
-        rises = flat_now.copy()
-        rises[0] &= ~self._flat
-        rises[1:] &= ~flat_now[:-1]
-        for c, kh in np.argwhere(rises.T).tolist():  # by channel, then time
+        # -- flat line: repeats of the previous reading, all channels (each rise of the
+        # flat flag is an alarm; the first one opens the event); and the second
+        # differences for the noise level
+        self._run, flat_now, rises, d2, self._prev = kernels.flat_line_runs(
+            self._prev, a, self._run, self._flat, FLAT_RUN
+        )
+        for kh, c in rises.tolist():  # by channel, then time
             value = a[kh, c]
             if value == 0.0:
                 kind = "dead"
@@ -196,9 +191,8 @@ class ChannelMonitor:
             else:
                 kind = "stuck"
             self._isolate(c, kind, float(t[kh]), float(t[kh]) - (FLAT_RUN - 1) * dt)
-        self._flat = flat_now[-1].copy()
+        self._flat = flat_now
         # -- noise level: the median square of second differences over whole windows
-        d2 = ext[2:] - 2.0 * ext[1:-1] + ext[:-2]
         k0 = 0
         while k0 < k:
             k1 = min(k, k0 + NOISE_WINDOW - self._win_n)
@@ -220,7 +214,6 @@ class ChannelMonitor:
             for c in np.flatnonzero(noisy & ~self._noisy).tolist():
                 self._isolate(c, "noisy", float(t[k1 - 1]), onset)
             self._noisy = noisy
-        self._prev = ext[-2:].copy()
 
     # ----------------------------------------------------------------- parity
     def observe_parity(self, t_s: float, innovation: np.ndarray, cov: np.ndarray) -> None:
@@ -228,17 +221,12 @@ class ChannelMonitor:
         r = np.asarray(innovation, dtype=float)
         if not np.all(np.isfinite(r)) or not self.groups:
             return
+        c = self._cusum
         try:
-            w = np.linalg.solve(cov, self._g_sig.T)  # S^-1 s_g, (nq, G)
+            top = kernels.parity_cusum(r, cov, self._g_sig, c, CUSUM_K)
         except np.linalg.LinAlgError:
             return
-        scale = np.sqrt(np.maximum(np.einsum("gi,ig->g", self._g_sig, w), 1e-300))
-        z = (r @ w) / scale  # (G,)
-        c = self._cusum
-        c[:, 0] = np.maximum(0.0, c[:, 0] + z - CUSUM_K)
-        c[:, 1] = np.maximum(0.0, c[:, 1] - z - CUSUM_K)
-        top = np.max(c, axis=1)
-        if np.max(top) <= CUSUM_H:
+        if top.max() <= CUSUM_H:
             return
         # an offset on one channel moves every group whose signature is not orthogonal
         # to its own, its own the fastest (Cauchy-Schwarz in the S^-1 metric): the

@@ -122,3 +122,6 @@ class FeatureModelMixin:
             d = d + np.einsum("rs,scm->rcm", fb, _product_derivatives(QUAD_PAIRS))
         self._quad_d = d
         self._quad6_d = _product_derivatives(QUAD_PAIRS)  # (6, 3, 3): d q6 / dw = D @ w
+        # the aided products' map into the solved ones (nq, 6); (nq, 0) without
+        aq = self._aided_in_quad
+        self._aided_rate_cols = np.zeros((self.layout.nq, 0)) if aq is None else aq

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from filters.algebra import shrink_to_size
+from filters import kernels
 from filters.state import ATT, POS, RATE, VEL
 from filters.supervision import GAP_RESET_AFTER_REJECTS
 from filters.updates import Measurement, quadratic_form
@@ -41,17 +41,14 @@ class MeasurementsMixin:
         With ``quad_feedback`` the rate columns also carry the forecast
         compensation's return of the rate error, ``E_q J6(w)``.
         """
-        i, j = self.quad_pairs[:, 0], self.quad_pairs[:, 1]
-        inv_k = 1.0 / w_block.shape[0]
-        pred = (w_block.T @ w_block)[i, j] * inv_k
-        w_mean = w_block.sum(axis=0) * inv_k
+        pred, w_mean = kernels.block_products(w_block, self.quad_pairs)
         if rate_var is not None:
-            w_mean = shrink_to_size(w_mean, rate_var)
+            w_mean = kernels.shrink(w_mean, rate_var)
         h = self._h_rate_base.copy()
-        h[:, RATE] = self._quad_d @ w_mean
-        if self._aided_in_quad is not None:
-            # the solved products hold A_q (q(w) - q(w_hat)) of the aided terms
-            h[:, RATE] += self._aided_in_quad @ (self._quad6_d @ w_mean)
+        # with aided products the solved ones hold A_q (q(w) - q(w_hat)) of them
+        h[:, RATE] = kernels.rate_jacobian_rate_columns(
+            w_mean, self._quad_d, self._aided_rate_cols, self._quad6_d
+        )
         if self.layout.n_dr:
             h[:, self.layout.dr] = sg[6:]
             h[:, RATE] += self.geometry_rate_jacobian(w_mean)[6:]
@@ -79,12 +76,11 @@ class MeasurementsMixin:
         nq = self.layout.nq
         prr = self.P[RATE, RATE]
         pred, h = self.rate_model(w_block, sg, np.diagonal(prr))
-        i, j = self.quad_pairs[:, 0], self.quad_pairs[:, 1]
-        pij = prr[i, j]
+        # second order: the mean P_ij of d_i d_j and its spread about it
+        pij, spread = kernels.product_moments(prr, self.quad_pairs)
         pred = pred + pij + self.bias[6:]
-        # second order: the spread of d_i d_j about its mean P_ij
         r = self._sqq * (1.0 / k)
-        r.flat[:: nq + 1] += prr[i, i] * prr[j, j] + pij * pij
+        r.flat[:: nq + 1] += spread
         if self.layout.n_dr:
             pred = pred + sg[6:] @ self.dr
         m = None if block is None else self.rate_noise_cross(*block, held)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from filters import kernels
 from filters.algebra import (
     BODY_INJECTION_MAX_CURVATURE_MPS,
     _axial,
@@ -14,7 +15,6 @@ from filters.algebra import (
 from filters.state import ATT, POS, RATE, VEL
 from ngnav.rotation import (
     cross3,
-    cross_rows,
     dcm_from_quat,
     euler_from_quat,
     quat_from_euler,
@@ -56,21 +56,7 @@ class NominalMixin:
         k = wdot.shape[0]
         bw, bf = self._feature_offset(sg)
         mw, mw0, wts, wts1 = self._block_weights(k, dt)
-        # rate, sample rotation vectors and their running sum (attitude relative to
-        # the block start, second order) at once: all linear in the K + 1 samples
-        wd = np.concatenate([self._last_wdot[None], wdot])
-        wd -= bw
-        lin = mw @ wd
-        lin += mw0 * self.w
-        w = lin[:k]
-        alpha = lin[k : 2 * k]
-        cum = lin[2 * k :]
-        f_c = np.concatenate([self._last_f[None], f])
-        f_c -= bf
-        # rotate f_k by exp(cum_k) to the block-start body frame, to second order
-        cf = cross_rows(cum, f_c)
-        f_b0 = f_c + cf + 0.5 * cross_rows(cum, cf)
-        c0 = dcm_from_quat(self.q)
+        c0 = kernels.dcm(self.q)
         pa = self.P[ATT, ATT]
         g_n = self._g
         if self.in_body_frame():
@@ -87,18 +73,16 @@ class NominalMixin:
             m = pa @ c0
             m *= 0.5
             m += (1.0 - 0.5 * (pa[0, 0] + pa[1, 1] + pa[2, 2])) * c0
-        # the trapezoid's velocity increment, position increment and mean force
-        # are weighted sums of a_n = m f_b0 + g over the samples
-        y = (wts @ f_b0) @ m.T
-        y += wts1 * g_n
+        # rates, the attitude's rotation vector (second order, with the coning term
+        # sum_s cum_s x alpha_s / 2) and the trapezoid's increments of a_n = m f_b0 + g
+        # (f rotated to the block-start body frame by the running attitude): all linear
+        # in the K + 1 samples (kernels.mechanise)
+        w, y, rot = kernels.mechanise(
+            self._last_wdot, wdot, bw, self._last_f, f, bf, mw, mw0, wts, wts1, self.w, m, g_n
+        )
         self.pos = self.pos + (k * dt) * self.vel + y[1]
         self.vel = self.vel + y[0]
-        # attitude: exact product of the sample rotations, with the coning term
-        # sum_s cum_s x alpha_s / 2, the axial vector of sum_s cum_s alpha_s^T
-        m01, m02, m10, m12, m20, m21 = (cum[:-1].T @ alpha).ravel()[[1, 2, 3, 5, 6, 7]].tolist()
-        cx, cy, cz = cum[-1].tolist()
-        rot = [cx + 0.5 * (m12 - m21), cy + 0.5 * (m20 - m02), cz + 0.5 * (m01 - m10)]
-        self.q = quat_rotate_by_rotvec(self.q, rot, left=False)
+        self.q = kernels.rotate_right(self.q, rot[0], rot[1], rot[2])
         self.w = w[-1].copy()
         self._last_wdot = wdot[-1].copy()
         self._last_f = f[-1].copy()

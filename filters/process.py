@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from filterpy.kalman import predict as kf_predict
 
-from filters.algebra import force_curvature_variance, shrink_to_size
-from filters.state import ATT, N_NAV, POS, RATE, VEL
+from filters import kernels
+from filters.state import ATT, RATE, VEL
 from ngnav.rotation import (
     dcm_from_quat,
     skew,
@@ -38,8 +38,7 @@ class ProcessMixin:
         the wrong way (`multirotor`: attitude inside its band on 86.4 % of epochs, 92.9 %
         so; docs/design.md, "Process model").
         """
-        sf = skew(f_n)
-        return shrink_to_size(f_n, np.diagonal(sf @ self.P[ATT, ATT] @ sf.T))
+        return kernels.shrunk_force(f_n, self.P[ATT, ATT])
 
     def _add_curvature_noise(self, t_s: float, f_n: np.ndarray) -> None:
         """The attitude error's second-order action on the force, as a random constant.
@@ -64,7 +63,7 @@ class ProcessMixin:
         if self.in_body_frame():
             acc[:] = 0.0
             return
-        var_b = force_curvature_variance(f_n, self.P[ATT, ATT])
+        var_b = kernels.force_curvature_variance(f_n, self.P[ATT, ATT])
         new = acc + np.sqrt(np.maximum(var_b, 0.0)) * t_s
         d = new * new - acc * acc
         acc[:] = new
@@ -111,26 +110,8 @@ class ProcessMixin:
             gw = self.geometry_rate_jacobian(self.w)
             fc[RATE, RATE] -= gw[0:3]
             fc[VEL, RATE] -= c @ gw[3:6]
-        # F t = [[A, B], [0, 0]] (navigation rows first), so (F t)^m = A^(m-1) [A, B]:
-        # the series I + F t + (F t)^2 / 2 + (F t)^3 / 6 needs only the 12 rows
-        # in Horner form, (I + A (I + A / 3) / 2) [A, B]
-        ft = fc * t
-        a = ft[:, :N_NAV]
-        b = a * (1.0 / 3.0)
-        b += self._eye12
-        b = a @ b
-        b *= 0.5
-        b += self._eye12
-        phi = self._eye.copy()
-        phi[:N_NAV] += b @ ft
-        # noise of the k samples, summed exactly for constant C: body-frame blocks rotated
-        t12 = self._t12
-        t12[0:3, 0:3] = c
-        t12[3:6, 3:6] = c
-        t12[6:9, 6:9] = c
-        q12 = t12 @ self._q12_body(k, dt) @ t12.T
-        q = self._q_walks(t).copy()
-        q[:12, :12] = q12
+        phi = kernels.transition(fc * t)
+        q = kernels.rotated_nav_noise(c, self._q12_body(k, dt), self._q_walks(t))
         return phi, q
 
     def _q_walks(self, t: float) -> np.ndarray:
@@ -239,20 +220,12 @@ class ProcessMixin:
         wdot_b_rps2, omega_b_rps : arrays (3,)
             The block's angular acceleration and rate, FRD.
         """
-        ax, ay, az = np.asarray(wdot_b_rps2, dtype=float).tolist()
-        x, y, z = np.asarray(omega_b_rps, dtype=float).tolist()
-        n2 = x * x + y * y + z * z
-        # [wdot]x + [w]x^2 = [wdot]x + w w^T - |w|^2 I
-        m = np.array(
-            [
-                [x * x - n2, x * y - az, x * z + ay],
-                [y * x + az, y * y - n2, y * z - ax],
-                [z * x - ay, z * y + ax, z * z - n2],
-            ]
+        return kernels.geometry_jacobian(
+            np.asarray(wdot_b_rps2, dtype=float),
+            np.asarray(omega_b_rps, dtype=float),
+            self.sensor_axes_b,
+            self._solve_rep,
         )
-        tm = self.sensor_axes_b @ m  # (N, 3)
-        # entry (r, 3 i + c) is S[r, i] tm[i, c]: S with each column repeated 3 times
-        return self._solve_rep * tm.ravel()
 
     def geometry_rate_jacobian(self, omega_b_rps: np.ndarray) -> np.ndarray:
         """Sensitivity (k, 3) of ``T S G(w) dr_hat`` to the rate, at the estimated positions.
@@ -263,15 +236,9 @@ class ProcessMixin:
         0.1 rad/s^2 of angular acceleration per rad/s, which the transition and the rate
         measurement carry.
         """
-        w = np.asarray(omega_b_rps, dtype=float)
-        d = self.dr.reshape(-1, 3)
-        th = self.sensor_axes_b
-        rows = (
-            (d @ w)[:, None] * th
-            + (th @ w)[:, None] * d
-            - 2.0 * np.einsum("ij,ij->i", th, d)[:, None] * w[None, :]
-        )  # (N, 3)
-        return self._solve_t @ rows
+        return kernels.geometry_rate_jacobian(
+            np.asarray(omega_b_rps, dtype=float), self.dr, self.sensor_axes_b, self._solve_t
+        )
 
     def _feature_offset(self, sg: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """What the nominal removes from ``wdot`` and ``f``: biases plus ``S G dr_hat``."""
@@ -310,11 +277,4 @@ class ProcessMixin:
             if j.size == 0:
                 return None
             lag = float(np.mean(k - j))
-        cw, cf = c @ cq[0:3], c @ cq[3:6]
-        a = dt * dt * lag
-        m = np.zeros((self.layout.n, self.layout.nq))
-        m[POS] = -a * cf
-        m[VEL] = -dt * cf
-        m[ATT] = -a * cw
-        m[RATE] = -dt * cq[0:3]
-        return m
+        return kernels.rate_noise_cross(cq, c, dt, lag, self.layout.n)

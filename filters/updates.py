@@ -14,6 +14,10 @@ from typing import NamedTuple
 import numpy as np
 from filterpy.kalman import update as kf_update
 
+from filters import kernels
+
+_NO_CROSS = np.zeros((0, 0))  # kernels.innovation_cov's "no cross-covariance"
+
 
 class Measurement(NamedTuple):
     """One measurement as filterpy's ``update`` takes it, at a zero error state.
@@ -39,12 +43,9 @@ class Measurement(NamedTuple):
 
     def innovation_cov(self, p: np.ndarray) -> np.ndarray:
         """``S = H P H^T + R`` (plus ``H M + M^T H^T`` with a cross-covariance ``M``)."""
-        h = self.H
-        s = h @ p @ h.T + self.R
-        if self.cross is not None:
-            hm = h @ self.cross
-            s += hm + hm.T
-        return s
+        return kernels.innovation_cov(
+            self.H, p, self.R, _NO_CROSS if self.cross is None else self.cross
+        )
 
 
 def update_correlated(

@@ -1,0 +1,434 @@
+"""Compiled inner loops of a filter step (numba): the arithmetic of the process model.
+
+Each kernel computes what the numpy expression beside its caller computed, in the
+same order of operations where that matters, without numpy's per-call overhead:
+a block's step was some 400 small numpy calls around filterpy's predict and
+update, ten times the cost of filterpy alone (``ngnav bench-filter``). Compiled
+on first use and cached on disk (``cache=True``: the next process loads it).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from filters.state import ATT, N_NAV, POS, RATE, VEL
+
+# the navigation blocks' first rows (numba reads them as compile-time constants)
+_POS, _VEL, _ATT, _RATE = POS.start, VEL.start, ATT.start, RATE.start
+
+
+@njit(cache=True)
+def dcm(q: np.ndarray) -> np.ndarray:
+    """``C_nb`` (3, 3) of a quaternion (4,), normalised with a non-negative scalar part."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if w < 0.0:
+        n = -n
+    w, x, y, z = w / n, x / n, y / n, z / n
+    c = np.empty((3, 3))
+    c[0, 0] = 1 - 2 * (y * y + z * z)
+    c[0, 1] = 2 * (x * y - w * z)
+    c[0, 2] = 2 * (x * z + w * y)
+    c[1, 0] = 2 * (x * y + w * z)
+    c[1, 1] = 1 - 2 * (x * x + z * z)
+    c[1, 2] = 2 * (y * z - w * x)
+    c[2, 0] = 2 * (x * z - w * y)
+    c[2, 1] = 2 * (y * z + w * x)
+    c[2, 2] = 1 - 2 * (x * x + y * y)
+    return c
+
+
+@njit(cache=True)
+def rotate_right(q: np.ndarray, rx: float, ry: float, rz: float) -> np.ndarray:
+    """``q * exp(r)`` (4,), renormalised (:func:`ngnav.rotation.quat_rotate_by_rotvec`)."""
+    a = math.sqrt(rx * rx + ry * ry + rz * rz)
+    k1 = 0.5 - a * a / 48.0 if a < 1e-4 else math.sin(0.5 * a) / a
+    ew, ex, ey, ez = math.cos(0.5 * a), k1 * rx, k1 * ry, k1 * rz
+    pw, px, py, pz = q[0], q[1], q[2], q[3]
+    w = pw * ew - px * ex - py * ey - pz * ez
+    x = pw * ex + px * ew + py * ez - pz * ey
+    y = pw * ey - px * ez + py * ew + pz * ex
+    z = pw * ez + px * ey - py * ex + pz * ew
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if w < 0.0:
+        n = -n
+    out = np.empty(4)
+    out[0], out[1], out[2], out[3] = w / n, x / n, y / n, z / n
+    return out
+
+
+@njit(cache=True)
+def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    out = np.empty_like(a)
+    for s in range(a.shape[0]):
+        out[s, 0] = a[s, 1] * b[s, 2] - a[s, 2] * b[s, 1]
+        out[s, 1] = a[s, 2] * b[s, 0] - a[s, 0] * b[s, 2]
+        out[s, 2] = a[s, 0] * b[s, 1] - a[s, 1] * b[s, 0]
+    return out
+
+
+@njit(cache=True)
+def mechanise(
+    last_wdot: np.ndarray,
+    wdot: np.ndarray,
+    bw: np.ndarray,
+    last_f: np.ndarray,
+    f: np.ndarray,
+    bf: np.ndarray,
+    mw: np.ndarray,
+    mw0: np.ndarray,
+    wts: np.ndarray,
+    wts1: np.ndarray,
+    w0: np.ndarray,
+    m: np.ndarray,
+    g_n: np.ndarray,
+):
+    """One block's rates, attitude increment and force integrals (``NavFilter.propagate``).
+
+    ``wdot``, ``f`` (K, 3) the block's compensated samples, ``last_*`` (3,) the previous
+    block's last; ``bw``, ``bf`` (3,) what the nominal removes from them; ``mw``, ``mw0``,
+    ``wts`` the block's integration weights (``NavFilter._block_weights``); ``w0`` (3,)
+    the rate at the block start; ``m`` (3, 3) the map of the block-start body force to
+    NED; ``g_n`` (3,) gravity. Returns the rates at the K samples (K, 3), the velocity
+    increment, the position increment beyond ``K dt v0`` and the mean of ``m f + g``
+    (rows of (3, 3)), and the block's rotation vector with its coning term (3,).
+    """
+    k = wdot.shape[0]
+    wd = np.empty((k + 1, 3))
+    f_c = np.empty((k + 1, 3))
+    for a in range(3):
+        wd[0, a] = last_wdot[a] - bw[a]
+        f_c[0, a] = last_f[a] - bf[a]
+    for s in range(k):
+        for a in range(3):
+            wd[s + 1, a] = wdot[s, a] - bw[a]
+            f_c[s + 1, a] = f[s, a] - bf[a]
+    lin = mw @ wd
+    for r in range(lin.shape[0]):
+        for a in range(3):
+            lin[r, a] += mw0[r, 0] * w0[a]
+    w = lin[:k].copy()
+    alpha = lin[k : 2 * k]
+    cum = lin[2 * k :]
+    cf = _cross_rows(cum, f_c)
+    ccf = _cross_rows(cum, cf)
+    f_b0 = f_c + cf + 0.5 * ccf
+    y = (wts @ f_b0) @ m.T
+    for r in range(3):
+        for a in range(3):
+            y[r, a] += wts1[r, 0] * g_n[a]
+    mm = np.zeros((3, 3))  # sum_s cum_s alpha_s^T over the block's samples
+    for s in range(k):
+        for a in range(3):
+            for b in range(3):
+                mm[a, b] += cum[s, a] * alpha[s, b]
+    rot = np.empty(3)
+    rot[0] = cum[k, 0] + 0.5 * (mm[1, 2] - mm[2, 1])
+    rot[1] = cum[k, 1] + 0.5 * (mm[2, 0] - mm[0, 2])
+    rot[2] = cum[k, 2] + 0.5 * (mm[0, 1] - mm[1, 0])
+    return w, y, rot
+
+
+@njit(cache=True)
+def shrink(x: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """``sign(x) sqrt(max(0, x^2 - var))`` per component (``algebra.shrink_to_size``)."""
+    out = np.empty(x.shape[0])
+    for i in range(x.shape[0]):
+        xi = x[i]
+        out[i] = math.copysign(math.sqrt(max(xi * xi - var[i], 0.0)), xi) if xi != 0.0 else 0.0
+    return out
+
+
+@njit(cache=True)
+def shrunk_force(f_n: np.ndarray, p_att: np.ndarray) -> np.ndarray:
+    """``f_n`` shrunk per component by ``diag([f]x P_att [f]x^T)`` (``force_for_jacobian``)."""
+    sf = np.zeros((3, 3))
+    sf[0, 1], sf[0, 2] = -f_n[2], f_n[1]
+    sf[1, 0], sf[1, 2] = f_n[2], -f_n[0]
+    sf[2, 0], sf[2, 1] = -f_n[1], f_n[0]
+    var = np.zeros(3)
+    for i in range(3):
+        for a in range(3):
+            for b in range(3):
+                var[i] += sf[i, a] * p_att[a, b] * sf[i, b]
+    return shrink(f_n, var)
+
+
+@njit(cache=True)
+def force_curvature_variance(f_n: np.ndarray, p_att: np.ndarray) -> np.ndarray:
+    """Variance (3,) of each NED axis of ``[dtheta]x^2 f / 2`` for ``dtheta ~ N(0, P_att)``.
+
+    See :func:`filters.algebra.force_curvature_variance` (the formula and its reason).
+    """
+    u = np.zeros(3)
+    for i in range(3):
+        for j in range(3):
+            u[i] += p_att[i, j] * f_n[j]
+    pu = np.zeros(3)
+    for i in range(3):
+        for j in range(3):
+            pu[i] += p_att[i, j] * u[j]
+    fu = f_n[0] * u[0] + f_n[1] * u[1] + f_n[2] * u[2]
+    frob = 0.0
+    for i in range(3):
+        for j in range(3):
+            frob += p_att[i, j] * p_att[i, j]
+    out = np.empty(3)
+    for i in range(3):
+        out[i] = 0.25 * (u[i] * u[i] + fu * p_att[i, i]) + f_n[i] * (0.5 * frob * f_n[i] - pu[i])
+    return out
+
+
+@njit(cache=True)
+def transition(ft: np.ndarray) -> np.ndarray:
+    """``I + F t + (F t)^2 / 2 + (F t)^3 / 6`` (n, n) from ``F t``'s navigation rows (12, n).
+
+    ``F t = [[A, B], [0, 0]]``, so ``(F t)^m = A^(m-1) [A, B]`` and the series needs only
+    the navigation rows, in Horner form ``(I + A (I + A / 3) / 2) [A, B]``.
+    """
+    n = ft.shape[1]
+    a = np.ascontiguousarray(ft[:, :N_NAV])
+    b = a * (1.0 / 3.0)
+    for i in range(N_NAV):
+        b[i, i] += 1.0
+    b = a @ b
+    b *= 0.5
+    for i in range(N_NAV):
+        b[i, i] += 1.0
+    phi = np.eye(n)
+    phi[:N_NAV] += b @ ft
+    return phi
+
+
+@njit(cache=True)
+def rotated_nav_noise(c: np.ndarray, q12_body: np.ndarray, q_walks: np.ndarray) -> np.ndarray:
+    """Process noise (n, n): ``q_walks`` with the navigation block ``T q12_body T^T``,
+    ``T`` block-diagonal ``(C, C, C, I)`` (body-frame noise blocks rotated to NED)."""
+    t12 = np.eye(N_NAV)
+    for b in range(3):
+        t12[3 * b : 3 * b + 3, 3 * b : 3 * b + 3] = c
+    q = q_walks.copy()
+    q[:N_NAV, :N_NAV] = t12 @ q12_body @ t12.T
+    return q
+
+
+@njit(cache=True)
+def geometry_rate_jacobian(
+    w: np.ndarray, dr: np.ndarray, axes: np.ndarray, solve_t: np.ndarray
+) -> np.ndarray:
+    """``T S`` times the rows ``(w . dr_i) theta_i + (theta_i . w) dr_i - 2 (theta_i . dr_i) w``
+    (k, 3): the rate derivative of what the nominal removes for the sensor positions
+    (``NavFilter.geometry_rate_jacobian``); ``dr`` (3N,), ``axes`` (N, 3)."""
+    n = axes.shape[0]
+    rows = np.empty((n, 3))
+    for i in range(n):
+        dx, dy, dz = dr[3 * i], dr[3 * i + 1], dr[3 * i + 2]
+        tx, ty, tz = axes[i, 0], axes[i, 1], axes[i, 2]
+        wd = dx * w[0] + dy * w[1] + dz * w[2]
+        tw = tx * w[0] + ty * w[1] + tz * w[2]
+        td = tx * dx + ty * dy + tz * dz
+        rows[i, 0] = wd * tx + tw * dx - 2.0 * td * w[0]
+        rows[i, 1] = wd * ty + tw * dy - 2.0 * td * w[1]
+        rows[i, 2] = wd * tz + tw * dz - 2.0 * td * w[2]
+    return np.ascontiguousarray(solve_t) @ rows
+
+
+@njit(cache=True)
+def geometry_jacobian(
+    wdot: np.ndarray, w: np.ndarray, axes: np.ndarray, solve_rep: np.ndarray
+) -> np.ndarray:
+    """The features' sensitivity (k, 3N) to the sensor positions, ``T S G``
+    (``NavFilter.geometry_jacobian``): row ``i`` of ``G`` is ``theta_i^T ([wdot]x + [w]x^2)``."""
+    ax, ay, az = wdot[0], wdot[1], wdot[2]
+    x, y, z = w[0], w[1], w[2]
+    n2 = x * x + y * y + z * z
+    m = np.empty((3, 3))
+    m[0, 0], m[0, 1], m[0, 2] = x * x - n2, x * y - az, x * z + ay
+    m[1, 0], m[1, 1], m[1, 2] = y * x + az, y * y - n2, y * z - ax
+    m[2, 0], m[2, 1], m[2, 2] = z * x - ay, z * y + ax, z * z - n2
+    tm = (np.ascontiguousarray(axes) @ m).ravel()
+    out = np.empty_like(solve_rep)
+    for r in range(solve_rep.shape[0]):
+        for c in range(solve_rep.shape[1]):
+            out[r, c] = solve_rep[r, c] * tm[c]
+    return out
+
+
+@njit(cache=True)
+def rate_jacobian_rate_columns(
+    w: np.ndarray, quad_d: np.ndarray, aided: np.ndarray, quad6_d: np.ndarray
+) -> np.ndarray:
+    """The rate products' Jacobian in the rate (nq, 3): ``D w`` (the products' derivative,
+    with the forecast's feedback) plus ``A_q D6 w`` of the aided products (``aided``
+    (nq, 6), or (nq, 0) without)."""
+    nq = quad_d.shape[0]
+    h = np.zeros((nq, 3))
+    for r in range(nq):
+        for c in range(3):
+            h[r, c] = quad_d[r, c, 0] * w[0] + quad_d[r, c, 1] * w[1] + quad_d[r, c, 2] * w[2]
+    if aided.shape[1]:
+        j6 = np.empty((6, 3))
+        for r in range(6):
+            for c in range(3):
+                j6[r, c] = (
+                    quad6_d[r, c, 0] * w[0] + quad6_d[r, c, 1] * w[1] + quad6_d[r, c, 2] * w[2]
+                )
+        h += aided @ j6
+    return h
+
+
+@njit(cache=True)
+def block_products(w_block: np.ndarray, pairs: np.ndarray):
+    """The block mean of ``w_i w_j`` over its samples (nq,) and its mean rate (3,)."""
+    k = w_block.shape[0]
+    inv_k = 1.0 / k
+    nq = pairs.shape[0]
+    pred = np.zeros(nq)
+    w_mean = np.zeros(3)
+    for s in range(k):
+        for a in range(3):
+            w_mean[a] += w_block[s, a]
+        for r in range(nq):
+            pred[r] += w_block[s, pairs[r, 0]] * w_block[s, pairs[r, 1]]
+    return pred * inv_k, w_mean * inv_k
+
+
+@njit(cache=True)
+def product_moments(p_rate: np.ndarray, pairs: np.ndarray):
+    """``E[d_i d_j] = P_ij`` (nq,) of the rate error's products and their variances
+    ``P_ii P_jj + P_ij^2`` (nq,) for a Gaussian rate error of covariance ``p_rate`` (3, 3)."""
+    nq = pairs.shape[0]
+    pij = np.empty(nq)
+    spread = np.empty(nq)
+    for r in range(nq):
+        i, j = pairs[r, 0], pairs[r, 1]
+        pij[r] = p_rate[i, j]
+        spread[r] = p_rate[i, i] * p_rate[j, j] + pij[r] * pij[r]
+    return pij, spread
+
+
+@njit(cache=True)
+def rate_noise_cross(cq: np.ndarray, c: np.ndarray, dt: float, lag: float, n: int) -> np.ndarray:
+    """``E[dx v^T]`` (n, nq) of a block's propagation noise with its rate measurement's
+    (``NavFilter.rate_noise_cross``): ``cq`` (6, nq) the features' cross-covariance with
+    the products, ``c`` (3, 3) ``C_nb``, ``lag`` the mean samples to the block end."""
+    nq = cq.shape[1]
+    cw = c @ np.ascontiguousarray(cq[0:3])
+    cf = c @ np.ascontiguousarray(cq[3:6])
+    a = dt * dt * lag
+    m = np.zeros((n, nq))
+    for i in range(3):
+        for j in range(nq):
+            m[_POS + i, j] = -a * cf[i, j]
+            m[_VEL + i, j] = -dt * cf[i, j]
+            m[_ATT + i, j] = -a * cw[i, j]
+            m[_RATE + i, j] = -dt * cq[i, j]
+    return m
+
+
+@njit(cache=True)
+def innovation_cov(h: np.ndarray, p: np.ndarray, r: np.ndarray, cross: np.ndarray) -> np.ndarray:
+    """``H P H^T + R`` plus ``H M + M^T H^T`` (``cross`` ``M`` (n, m), or (n, 0) without)."""
+    h = np.ascontiguousarray(h)
+    s = h @ np.ascontiguousarray(p) @ h.T + r
+    if cross.shape[1]:
+        hm = h @ np.ascontiguousarray(cross)
+        s += hm + hm.T
+    return s
+
+
+@njit(cache=True)
+def reset_rows(
+    p: np.ndarray, ga: np.ndarray, gvv: np.ndarray, gvt: np.ndarray, att0: int, vel0: int
+) -> np.ndarray:
+    """``G P G^T`` (n, n), symmetrised, for ``G`` the identity but its attitude rows ``ga``
+    (3, 3) and, unless ``gvv`` is (0, 0), its velocity rows ``[gvv, gvt]`` on the
+    velocity and attitude columns (``algebra.apply_reset_jacobian``)."""
+    out = p.copy()
+    n = p.shape[0]
+    a = slice(att0, att0 + 3)
+    v = slice(vel0, vel0 + 3)
+    body = gvv.shape[0] > 0
+    rows_t = np.ascontiguousarray(p[a, :])
+    if body:
+        rows_v = np.ascontiguousarray(p[v, :])
+        out[v, :] = gvv @ rows_v + gvt @ rows_t
+    out[a, :] = ga @ rows_t
+    cols_t = np.ascontiguousarray(out[:, a])
+    if body:
+        cols_v = np.ascontiguousarray(out[:, v])
+        out[:, v] = cols_v @ gvv.T + cols_t @ gvt.T
+    out[:, a] = cols_t @ ga.T
+    for i in range(n):
+        for j in range(i + 1, n):
+            s = 0.5 * (out[i, j] + out[j, i])
+            out[i, j] = s
+            out[j, i] = s
+    return out
+
+
+@njit(cache=True)
+def flat_line_runs(prev: np.ndarray, a: np.ndarray, run: np.ndarray, flat: np.ndarray, n_flat: int):
+    """The flat-line test over a block of readings (``faults.ChannelMonitor``).
+
+    ``prev`` (2, N) the two readings before the block, ``a`` (K, N) the block's; ``run``
+    (N,) each channel's repeats of its last reading so far and ``flat`` (N,) whether it
+    was flat (``n_flat`` identical readings in a row). Returns the new ``run`` and
+    ``flat``, the rises of the flat flag as (sample, channel) rows by channel then
+    sample, the second differences of the readings (K, N) and the block's last two
+    readings (2, N).
+    """
+    k, n = a.shape
+    ext = np.empty((k + 2, n))
+    ext[0:2] = prev
+    ext[2:] = a
+    run_out = run.copy()
+    flat_out = flat.copy()
+    rises = np.empty((k * n, 2), np.int64)
+    m = 0
+    for c in range(n):
+        r = run[c]
+        was = flat[c]
+        for i in range(k):
+            # NaN never repeats
+            r = r + 1 if ext[i + 2, c] == ext[i + 1, c] else 0
+            now = r + 1 >= n_flat
+            if now and not was:
+                rises[m, 0] = i
+                rises[m, 1] = c
+                m += 1
+            was = now
+        run_out[c] = r
+        flat_out[c] = was
+    d2 = ext[2:] - 2.0 * ext[1:-1] + ext[:-2]
+    return run_out, flat_out, rises[:m].copy(), d2, ext[k:].copy()
+
+
+@njit(cache=True)
+def parity_cusum(
+    r: np.ndarray, cov: np.ndarray, g_sig: np.ndarray, cusum: np.ndarray, allowance: float
+) -> np.ndarray:
+    """One step of the parity CUSUMs (``faults.ChannelMonitor.observe_parity``), in place.
+
+    ``r`` (nq,) the rate products' innovation, ``cov`` (nq, nq) its covariance ``S``,
+    ``g_sig`` (G, nq) the channel groups' signatures ``s_g``; each group's normalised
+    projection ``s_g' S^-1 r / sqrt(s_g' S^-1 s_g)`` feeds its two one-sided CUSUMs
+    ``cusum`` (G, 2). Returns each group's larger statistic (G,).
+    """
+    w = np.linalg.solve(np.ascontiguousarray(cov), np.ascontiguousarray(g_sig.T))  # (nq, G)
+    ng = g_sig.shape[0]
+    top = np.empty(ng)
+    for g in range(ng):
+        ss = 0.0
+        rw = 0.0
+        for i in range(r.shape[0]):
+            ss += g_sig[g, i] * w[i, g]
+            rw += r[i] * w[i, g]
+        z = rw / math.sqrt(max(ss, 1e-300))
+        cusum[g, 0] = max(0.0, cusum[g, 0] + z - allowance)
+        cusum[g, 1] = max(0.0, cusum[g, 1] - z - allowance)
+        top[g] = max(cusum[g, 0], cusum[g, 1])
+    return top
