@@ -48,19 +48,6 @@ _DTHETA_DV = np.r_[ATT, VEL]
 _DTHETA_DV_IX = np.ix_(_DTHETA_DV, _DTHETA_DV)
 #: (attitude, velocity, rate) error indices: the body-velocity remainder's variables.
 _DTHETA_DV_DW = np.r_[ATT, VEL, RATE]
-#: Levi-Civita symbol: ``(a x b)_i = EPS[i] a . b``, EPS[i, j, k] = eps_ijk.
-_EPS = np.zeros((3, 3, 3))
-for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
-    _EPS[_i, _j, _k] = 1.0
-    _EPS[_i, _k, _j] = -1.0
-
-
-_E3 = np.eye(3)
-#: The NED velocity curvature's bilinear part, ``(dtheta x xi_v)_i``, as ``x^T M_i x / 2``
-#: over ``x = (dtheta, xi_v)`` (:meth:`NavFilter.velocity_curvature`).
-_CURVATURE_CROSS = np.zeros((3, 6, 6))
-_CURVATURE_CROSS[:, 0:3, 3:6] = _EPS
-_CURVATURE_CROSS[:, 3:6, 0:3] = _EPS.transpose(0, 2, 1)
 
 
 def _axial(x: np.ndarray) -> np.ndarray:
@@ -133,16 +120,7 @@ def ned_velocity_curvature(vel_ned_mps: np.ndarray, p: np.ndarray) -> tuple[np.n
     / 2``: each component a quadratic form ``x^T M_i x / 2`` over ``x = (dtheta, xi_v)``,
     so ``E c_i = tr(M_i P) / 2`` and ``Cov(c_i, c_j) = tr(M_i P M_j P) / 2``.
     """
-    v = np.asarray(vel_ned_mps, dtype=float)
-    m = _CURVATURE_CROSS.copy()  # (3, 6, 6): M_i over (dtheta, xi_v)
-    # the attitude block -A(e_i, v) = -(e_i v^T + v e_i^T) / 2 + v_i I
-    m[:, 0:3, 0:3] = -0.5 * (_E3[:, :, None] * v[None, None, :])
-    m[:, 0:3, 0:3] -= 0.5 * (v[None, :, None] * _E3[:, None, :])
-    m[:, 0:3, 0:3] += v[:, None, None] * _E3[None, :, :]
-    mp = m @ p[_DTHETA_DV_IX]
-    mean = 0.5 * np.trace(mp, axis1=1, axis2=2)
-    cov = 0.5 * np.einsum("iab,jba->ij", mp, mp)
-    return mean, cov
+    return kernels.ned_velocity_curvature(np.asarray(vel_ned_mps, dtype=float), p[_DTHETA_DV_IX])
 
 
 #: Largest curvature ``|v| |dtheta|^2 / 2`` (m/s) of a correction the body-frame velocity

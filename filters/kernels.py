@@ -183,12 +183,13 @@ def force_curvature_variance(f_n: np.ndarray, p_att: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def transition(ft: np.ndarray) -> np.ndarray:
-    """``I + F t + (F t)^2 / 2 + (F t)^3 / 6`` (n, n) from ``F t``'s navigation rows (12, n).
+def transition(fc: np.ndarray, t: float) -> np.ndarray:
+    """``I + F t + (F t)^2 / 2 + (F t)^3 / 6`` (n, n) from ``F``'s navigation rows (12, n).
 
     ``F t = [[A, B], [0, 0]]``, so ``(F t)^m = A^(m-1) [A, B]`` and the series needs only
     the navigation rows, in Horner form ``(I + A (I + A / 3) / 2) [A, B]``.
     """
+    ft = fc * t
     n = ft.shape[1]
     a = np.ascontiguousarray(ft[:, :N_NAV])
     b = a * (1.0 / 3.0)
@@ -258,25 +259,25 @@ def geometry_jacobian(
 
 
 @njit(cache=True)
+def _dot_last(d: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``d @ w`` (m, 3) for ``d`` (m, 3, 3): products' derivatives at the rate ``w`` (3,)."""
+    out = np.empty((d.shape[0], 3))
+    for r in range(d.shape[0]):
+        for c in range(3):
+            out[r, c] = d[r, c, 0] * w[0] + d[r, c, 1] * w[1] + d[r, c, 2] * w[2]
+    return out
+
+
+@njit(cache=True)
 def rate_jacobian_rate_columns(
     w: np.ndarray, quad_d: np.ndarray, aided: np.ndarray, quad6_d: np.ndarray
 ) -> np.ndarray:
     """The rate products' Jacobian in the rate (nq, 3): ``D w`` (the products' derivative,
     with the forecast's feedback) plus ``A_q D6 w`` of the aided products (``aided``
     (nq, 6), or (nq, 0) without)."""
-    nq = quad_d.shape[0]
-    h = np.zeros((nq, 3))
-    for r in range(nq):
-        for c in range(3):
-            h[r, c] = quad_d[r, c, 0] * w[0] + quad_d[r, c, 1] * w[1] + quad_d[r, c, 2] * w[2]
+    h = _dot_last(quad_d, w)
     if aided.shape[1]:
-        j6 = np.empty((6, 3))
-        for r in range(6):
-            for c in range(3):
-                j6[r, c] = (
-                    quad6_d[r, c, 0] * w[0] + quad6_d[r, c, 1] * w[1] + quad6_d[r, c, 2] * w[2]
-                )
-        h += aided @ j6
+        h += aided @ _dot_last(quad6_d, w)
     return h
 
 
@@ -432,3 +433,212 @@ def parity_cusum(
         cusum[g, 1] = max(0.0, cusum[g, 1] - z - allowance)
         top[g] = max(cusum[g, 0], cusum[g, 1])
     return top
+
+
+@njit(cache=True)
+def error_dynamics(
+    fc_base: np.ndarray,
+    f_n: np.ndarray,
+    c: np.ndarray,
+    bias_effect_f: np.ndarray,
+    bias0: int,
+    quad_into: np.ndarray,
+    quad6_d: np.ndarray,
+    w: np.ndarray,
+    sg: np.ndarray,
+    dr0: int,
+    gw: np.ndarray,
+) -> np.ndarray:
+    """The error dynamics' navigation rows ``F`` (12, n) over a block
+    (``NavFilter.propagation_matrices``).
+
+    ``fc_base`` (12, n) its constant part; ``f_n`` (3,) the force the transition reads;
+    ``c`` (3, 3) ``C_nb``; ``bias_effect_f`` (3, nb) what the biases (from column
+    ``bias0``) leave in the force; ``quad_into`` (6, 6) what the rate products' error
+    reaches ``[wdot, f]`` through (``quad6_d`` (6, 3, 3) their derivative, ``w`` (3,) the
+    rate), or (0, 0); ``sg`` (k, 3N) the features' sensitivity to the sensor positions
+    (from column ``dr0``) and ``gw`` (k, 3) its rate derivative, or (0, 0) without.
+    """
+    fc = fc_base.copy()
+    v, a, r = _VEL, _ATT, _RATE
+    fc[v, a + 1] = f_n[2]
+    fc[v, a + 2] = -f_n[1]
+    fc[v + 1, a] = -f_n[2]
+    fc[v + 1, a + 2] = f_n[0]
+    fc[v + 2, a] = f_n[1]
+    fc[v + 2, a + 1] = -f_n[0]
+    nb = bias_effect_f.shape[1]
+    fc[v : v + 3, bias0 : bias0 + nb] = -(c @ np.ascontiguousarray(bias_effect_f))
+    fc[a : a + 3, r : r + 3] = c
+    if quad_into.shape[0]:
+        aj = quad_into @ _dot_last(quad6_d, w)
+        fc[r : r + 3, r : r + 3] = -aj[0:3]
+        fc[v : v + 3, r : r + 3] = -(c @ np.ascontiguousarray(aj[3:6]))
+    if sg.shape[0]:
+        nd = sg.shape[1]
+        fc[r : r + 3, dr0 : dr0 + nd] = -sg[0:3]
+        fc[v : v + 3, dr0 : dr0 + nd] = -(c @ np.ascontiguousarray(sg[3:6]))
+        fc[r : r + 3, r : r + 3] -= gw[0:3]
+        fc[v : v + 3, r : r + 3] -= c @ np.ascontiguousarray(gw[3:6])
+    return fc
+
+
+@njit(cache=True)
+def _exp(rx: float, ry: float, rz: float) -> np.ndarray:
+    """The quaternion (4,) of a rotation vector (rad), the series of sin(x)/x below 1e-4."""
+    a = math.sqrt(rx * rx + ry * ry + rz * rz)
+    k1 = 0.5 - a * a / 48.0 if a < 1e-4 else math.sin(0.5 * a) / a
+    e = np.empty(4)
+    e[0], e[1], e[2], e[3] = math.cos(0.5 * a), k1 * rx, k1 * ry, k1 * rz
+    return e
+
+
+@njit(cache=True)
+def _skew(v: np.ndarray) -> np.ndarray:
+    s = np.zeros((3, 3))
+    s[0, 1], s[0, 2] = -v[2], v[1]
+    s[1, 0], s[1, 2] = v[2], -v[0]
+    s[2, 0], s[2, 1] = -v[1], v[0]
+    return s
+
+
+@njit(cache=True)
+def inject(q: np.ndarray, v_old: np.ndarray, dth: np.ndarray, dv: np.ndarray, body: bool):
+    """A correction's attitude and velocity and its reset Jacobian's rows
+    (``NavFilter._inject``).
+
+    ``q`` (4,) ``q_nb``; ``v_old`` (3,) the NED velocity; ``dth`` (3,) the NED attitude
+    correction; ``dv`` (3,) the velocity correction, body-style when ``body`` (the body
+    velocity takes it and the corrected attitude carries it), else NED. Returns the new
+    ``q`` (4,) and velocity (3,), the attitude rows ``ga`` (3, 3)
+    (``algebra.attitude_reset_jacobian``) and, body-style, the velocity rows ``gvv``,
+    ``gvt`` (3, 3) (``algebra.body_velocity_reset_jacobian``; (0, 0) otherwise).
+    """
+    e = _exp(dth[0], dth[1], dth[2])
+    if body:
+        u = v_old + dv
+        u[0] += v_old[1] * dth[2] - v_old[2] * dth[1]
+        u[1] += v_old[2] * dth[0] - v_old[0] * dth[2]
+        u[2] += v_old[0] * dth[1] - v_old[1] * dth[0]
+        v_new = dcm(e) @ u
+    else:
+        v_new = v_old + dv
+    # exp(dth) * q, renormalised with a non-negative scalar part
+    pw, px, py, pz = e[0], e[1], e[2], e[3]
+    qw, qx, qy, qz = q[0], q[1], q[2], q[3]
+    w = pw * qw - px * qx - py * qy - pz * qz
+    x = pw * qx + px * qw + py * qz - pz * qy
+    y = pw * qy - px * qz + py * qw + pz * qx
+    z = pw * qz + px * qy - py * qx + pz * qw
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if w < 0.0:
+        n = -n
+    q_new = np.empty(4)
+    q_new[0], q_new[1], q_new[2], q_new[3] = w / n, x / n, y / n, z / n
+    hx, hy, hz = 0.5 * dth[0], 0.5 * dth[1], 0.5 * dth[2]
+    ga = np.eye(3)
+    ga[0, 1], ga[1, 0], ga[2, 0], ga[2, 1] = -hz, hz, -hy, hx
+    if not body:
+        return q_new, v_new, ga, np.zeros((0, 0)), np.zeros((0, 0))
+    st = _skew(dth)
+    sv = _skew(v_old)
+    gvv = np.eye(3) + st
+    gvt = st @ sv - _skew(dv) - 0.5 * sv @ st
+    return q_new, v_new, ga, gvv, gvt
+
+
+@njit(cache=True)
+def ned_velocity_curvature(v: np.ndarray, p6: np.ndarray):
+    """Mean (3,) and covariance (3, 3) of the NED velocity's second-order part under the
+    body-frame velocity error (``algebra.ned_velocity_curvature``): ``v`` (3,) the NED
+    velocity, ``p6`` (6, 6) the covariance of ``(dtheta, xi_v)``."""
+    m = np.zeros((3, 6, 6))
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3  # eps_ijk = 1, eps_ikj = -1
+        m[i, j, 3 + k] = 1.0
+        m[i, k, 3 + j] = -1.0
+        m[i, 3 + k, j] = 1.0
+        m[i, 3 + j, k] = -1.0
+        for a in range(3):
+            m[i, i, a] -= 0.5 * v[a]
+            m[i, a, i] -= 0.5 * v[a]
+            m[i, a, a] += v[i]
+    p = np.ascontiguousarray(p6)
+    mp = np.empty((3, 6, 6))
+    for i in range(3):
+        mp[i] = m[i] @ p
+    mean = np.empty(3)
+    for i in range(3):
+        mean[i] = 0.5 * np.trace(mp[i])
+    cov = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            s = 0.0
+            for a in range(6):
+                for b in range(6):
+                    s += mp[i, a, b] * mp[j, b, a]
+            cov[i, j] = 0.5 * s
+    return mean, cov
+
+
+@njit(cache=True)
+def covariance_flaw(p: np.ndarray) -> int:
+    """The per-block check of P: 0 if finite with a positive diagonal, 1 if not finite,
+    2 if a variance is not positive (``NavFilter.check_covariance``)."""
+    n = p.shape[0]
+    for i in range(n):
+        for j in range(n):
+            if not np.isfinite(p[i, j]):
+                return 1
+    for i in range(n):
+        if p[i, i] <= 0.0:
+            return 2
+    return 0
+
+
+@njit(cache=True)
+def remove_feature_residual(
+    q: np.ndarray,
+    w: np.ndarray,
+    vel: np.ndarray,
+    pos: np.ndarray,
+    r: np.ndarray,
+    t_s: float,
+    w_blk: np.ndarray,
+    dt: float,
+):
+    """A constant error ``r`` (6,) in a block's solved ``[wdot, f]`` out of the nominal
+    state propagated with it for ``t_s`` s (``NavFilter.remove_feature_residual``) and out
+    of the block's rates ``w_blk`` (K, 3) at its samples (interval ``dt``). Returns the
+    new rate, attitude, velocity, position and block rates."""
+    t2 = 0.5 * t_s * t_s
+    c = dcm(q)
+    w_new = w - t_s * r[0:3]
+    q_new = rotate_right(q, -t2 * r[0], -t2 * r[1], -t2 * r[2])
+    dv = c @ np.ascontiguousarray(r[3:6])
+    vel_new = vel - t_s * dv
+    pos_new = pos - t2 * dv
+    w_out = w_blk.copy()
+    for s in range(w_blk.shape[0]):
+        for a in range(3):
+            w_out[s, a] = w_blk[s, a] - ((s + 1) * dt) * r[a]
+    return w_new, q_new, vel_new, pos_new, w_out
+
+
+@njit(cache=True)
+def augment(x: np.ndarray, p: np.ndarray, z_dim: int, m: np.ndarray, r: np.ndarray, h: np.ndarray):
+    """The state augmented with a measurement's noise ``v`` (``updates.update_correlated``):
+    ``x_a = [x, 0]``, ``P_a = [[P, M], [M^T, R]]``, ``H_a = [H, I]`` and a zero R."""
+    n = x.shape[0]
+    xa = np.zeros(n + z_dim)
+    xa[:n] = x
+    pa = np.empty((n + z_dim, n + z_dim))
+    pa[:n, :n] = p
+    pa[:n, n:] = m
+    pa[n:, :n] = m.T
+    pa[n:, n:] = r
+    ha = np.zeros((z_dim, n + z_dim))
+    ha[:, :n] = h
+    for i in range(z_dim):
+        ha[i, n + i] = 1.0
+    return xa, pa, ha, np.zeros((z_dim, z_dim))

@@ -9,18 +9,15 @@ from filters.algebra import (
     BODY_INJECTION_MAX_CURVATURE_MPS,
     _axial,
     apply_reset_jacobian,
-    attitude_reset_jacobian,
-    body_velocity_reset_jacobian,
 )
 from filters.state import ATT, POS, RATE, VEL
 from ngnav.rotation import (
-    cross3,
     dcm_from_quat,
     euler_from_quat,
     quat_from_euler,
-    quat_from_rotvec,
-    quat_rotate_by_rotvec,
 )
+
+_NO_RATES = np.zeros((0, 3))  # kernels.remove_feature_residual: no block rates
 
 
 class NominalMixin:
@@ -138,7 +135,13 @@ class NominalMixin:
         self._last_wdot = np.array(wdot, dtype=float)
         self._last_f = np.array(f, dtype=float)
 
-    def remove_feature_residual(self, r_b: np.ndarray, t_s: float) -> None:
+    def remove_feature_residual(
+        self,
+        r_b: np.ndarray,
+        t_s: float,
+        w_block: np.ndarray | None = None,
+        dt: float = 0.0,
+    ) -> np.ndarray | None:
         """Take a constant error in the last block's solved ``[wdot, f]`` out of the state.
 
         ``r_b`` (6,) is the error (FRD; rad/s^2 and m/s^2) the block's ``t_s``
@@ -149,16 +152,14 @@ class NominalMixin:
         interval starts there); this removes them from the nominal state. Left: the
         block's turn, the propagation's second-order attitude-covariance factor on
         ``C f`` and what an attitude residual does through gravity. The covariance is
-        left as it is.
+        left as it is. With ``w_block`` (K, 3), the block's rates at its samples
+        (interval ``dt``), returns them without the residual's ``r (s + 1) dt``.
         """
-        r = np.asarray(r_b, dtype=float)
-        t2 = 0.5 * t_s * t_s
-        c = dcm_from_quat(self.q)
-        self.w = self.w - t_s * r[0:3]
-        self.q = quat_rotate_by_rotvec(self.q, -t2 * r[0:3], left=False)
-        dv = c @ r[3:6]
-        self.vel = self.vel - t_s * dv
-        self.pos = self.pos - t2 * dv
+        w_blk = _NO_RATES if w_block is None else w_block
+        self.w, self.q, self.vel, self.pos, w_out = kernels.remove_feature_residual(
+            self.q, self.w, self.vel, self.pos, np.asarray(r_b, dtype=float), t_s, w_blk, dt
+        )
+        return None if w_block is None else w_out
 
     # -------------------------------------------------------------- internals
     def _inject(self) -> None:
@@ -170,12 +171,9 @@ class NominalMixin:
             0.5 * float(np.linalg.norm(v_old)) * float(dth @ dth)
             <= BODY_INJECTION_MAX_CURVATURE_MPS
         )
-        if body:
-            # the body velocity takes the correction and the corrected attitude carries it
-            self.vel = dcm_from_quat(quat_from_rotvec(dth)) @ (v_old + dx[VEL] + cross3(v_old, dth))
-        else:
-            self.vel = v_old + dx[VEL]
-        self.q = quat_rotate_by_rotvec(self.q, dth, left=True)
+        # body-style, the body velocity takes the correction and the corrected attitude
+        # carries it
+        self.q, self.vel, ga, gvv, gvt = kernels.inject(self.q, v_old, dth, dx[VEL], body)
         self.w = self.w + dx[RATE]
         self.bias = self.bias + dx[self.layout.bias]
         self.dr = self.dr + dx[self.layout.dr]
@@ -186,10 +184,8 @@ class NominalMixin:
                 self.aoa_k += float(da[1])
         # reset Jacobian (first order): G = I except the attitude rows
         # (attitude_reset_jacobian) and, body-style, the velocity rows
-        ga = attitude_reset_jacobian(dth)
-        gvv = gvt = None
-        if body:
-            gvv, gvt = body_velocity_reset_jacobian(dth, dx[VEL], v_old)
+        if not body:
+            gvv = gvt = None
         self.P = apply_reset_jacobian(self.P, ga, gvv, gvt)
         if self.lag is not None:
             self.lag.reset(ga, gvv, gvt)

@@ -9,8 +9,9 @@ from filters import kernels
 from filters.state import ATT, RATE, VEL
 from ngnav.rotation import (
     dcm_from_quat,
-    skew,
 )
+
+_NONE = np.zeros((0, 0))  # a kernel's "not there"
 
 
 class ProcessMixin:
@@ -92,25 +93,28 @@ class ProcessMixin:
             Feature sensitivity to the sensor positions (with ``DR`` states).
         """
         t = k * dt
-        fc = self._fc_base.copy()
-        fc[VEL, ATT] = -skew(f_n)
-        fc[VEL, self.layout.bias] = -(c @ self._bias_effect_f)
-        fc[ATT, RATE] = c
-        if self._quad_into_features is not None:
-            # the features hold the forecast's S E_q q(w_hat) (and with channels excluded
-            # the aided A_m q(w_hat)), so a rate error reaches wdot and f as -A (.) J(w) dw
-            aj = self._quad_into_features @ (self._quad6_d @ self.w)  # (6, 3)
-            fc[RATE, RATE] = -aj[0:3]
-            fc[VEL, RATE] = -(c @ aj[3:6])
+        # a rate error reaches wdot and f through what the features hold of the rate
+        # products (the forecast's S E_q q(w_hat), and with channels excluded the aided
+        # A_m q(w_hat)); with sensor-position states the removed S G(w_hat) dr_hat is off
+        # by its rate derivative times the rate error
+        quad_into = self._quad_into_features
+        sg_, gw, dr0 = _NONE, _NONE, 0
         if self.layout.n_dr:
-            dr = self.layout.dr
-            fc[RATE, dr] = -sg[0:3]
-            fc[VEL, dr] = -c @ sg[3:6]
-            # the removed S G(w_hat) dr_hat is off by its rate derivative times the rate error
-            gw = self.geometry_rate_jacobian(self.w)
-            fc[RATE, RATE] -= gw[0:3]
-            fc[VEL, RATE] -= c @ gw[3:6]
-        phi = kernels.transition(fc * t)
+            sg_, gw, dr0 = sg, self.geometry_rate_jacobian(self.w), self.layout.dr.start
+        fc = kernels.error_dynamics(
+            self._fc_base,
+            f_n,
+            c,
+            self._bias_effect_f,
+            self.layout.bias.start,
+            _NONE if quad_into is None else quad_into,
+            self._quad6_d,
+            self.w,
+            sg_,
+            dr0,
+            gw,
+        )
+        phi = kernels.transition(fc, t)
         q = kernels.rotated_nav_noise(c, self._q12_body(k, dt), self._q_walks(t))
         return phi, q
 

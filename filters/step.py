@@ -136,8 +136,7 @@ class StepMixin:
                 # design notes, "the forecast's error out before the rate products")
                 r_all = self._se[:, 0:6] @ self.last_forecast_error
                 r6 = r_all[0:6]
-                nf.remove_feature_residual(r6, kk * dt)
-                w_blk = w_blk - np.outer(np.arange(1, kk + 1) * dt, r6[0:3])
+                w_blk = nf.remove_feature_residual(r6, kk * dt, w_blk, dt)
                 self._last_mean -= r_all
                 quad_fix = r_all[6:]
         if n_ok and nq:

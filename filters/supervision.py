@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from filters import kernels
 from filters.state import ATT
 from filters.updates import Measurement, quadratic_form
 from filters.vehicle_model import (
@@ -156,10 +157,11 @@ class SupervisionMixin:
         every GPS fix and once a second.
         """
         p = self.P
-        if not np.isfinite(p).all():
+        flaw = kernels.covariance_flaw(p)
+        if flaw == 1:
             raise CovarianceError(f"covariance not finite after {where} at t = {self.t_s:.3f} s")
         if not full:
-            if np.diagonal(p).min() <= 0.0:
+            if flaw == 2:
                 raise CovarianceError(
                     f"covariance has a non-positive variance after {where} at t = {self.t_s:.3f} s"
                 )

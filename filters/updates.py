@@ -69,14 +69,9 @@ def update_correlated(
     """
     if m is None:
         return kf_update(x, p, z, r, h)
-    n, nz = x.shape[0], z.shape[0]
-    pa = np.empty((n + nz, n + nz))
-    pa[:n, :n] = p
-    pa[:n, n:] = m
-    pa[n:, :n] = m.T
-    pa[n:, n:] = r
-    ha = np.hstack([h, np.eye(nz)])
-    xa, pa = kf_update(np.concatenate([x, np.zeros(nz)]), pa, z, np.zeros((nz, nz)), ha)
+    n = x.shape[0]
+    xa, pa, ha, ra = kernels.augment(x, p, z.shape[0], m, r, h)
+    xa, pa = kf_update(xa, pa, z, ra, ha)
     return xa[:n], pa[:n, :n]
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from ngnav.grey import MAX_ABS_A, MIN_WINDOW, grey_operators, one_step_forecast
 
@@ -87,20 +88,10 @@ class GreyPredictor:
         if isinstance(c, str):
             values, fell_back = one_step_forecast(history, c, axis=0)
             return values, int(np.count_nonzero(fell_back))
-        n = self.window
-        m = n - 1
         y = history + c
-        p = self._ops @ y  # centred z (m), centred Y (m), mean z, mean Y
-        vc = (p[: 2 * m].reshape(2, m, -1) * p[:m]).sum(axis=1)  # var(z), cov(z, Y)
-        var, cov = vc[0], vc[1]
-        if var.all():
-            a = cov / var
-            np.negative(a, out=a)
-            if a.all() and np.abs(a).max() <= MAX_ABS_A:
-                f = (p[2 * m + 1] + a * (p[2 * m] - y[0])) * (np.expm1(a) / a)
-                f *= np.exp(-n * a)
-                f -= c
-                return f, 0
+        f, ok = _gm11_forecast(y, self._ops @ y, c, MAX_ABS_A)
+        if ok:
+            return f, 0
         values, fell_back = one_step_forecast(history, c, axis=0)
         return values, int(np.count_nonzero(fell_back))
 
@@ -155,3 +146,29 @@ def noise_gain(predictor, history: np.ndarray, step: float = 1e-6) -> np.ndarray
         d = (predictor.forecast(up, 0)[0] - predictor.forecast(down, 0)[0]) / (2.0 * step)
         gain += d * d
     return gain
+
+
+@njit(cache=True)
+def _gm11_forecast(y: np.ndarray, p: np.ndarray, c: np.ndarray, max_abs_a: float):
+    """GM(1,1)'s one-step forecast (C,) of each column of the shifted history ``y`` (n, C)
+    (shift ``c`` (C,)) from ``p``, its window operators' products (2m + 2, C: centred z,
+    centred Y, mean z, mean Y; m = n - 1); and False where a window needs the general
+    path (zero variance, a = 0, |a| > ``max_abs_a``)."""
+    n, nc = y.shape
+    m = n - 1
+    f = np.empty(nc)
+    for j in range(nc):
+        var = 0.0
+        cov = 0.0
+        for i in range(m):
+            var += p[i, j] * p[i, j]
+            cov += p[m + i, j] * p[i, j]
+        if var == 0.0:
+            return f, False
+        a = -(cov / var)
+        if a == 0.0 or abs(a) > max_abs_a:
+            return f, False
+        f[j] = (p[2 * m + 1, j] + a * (p[2 * m, j] - y[0, j])) * (np.expm1(a) / a)
+        f[j] *= np.exp(-n * a)
+        f[j] -= c[j]
+    return f, True
