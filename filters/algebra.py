@@ -5,7 +5,6 @@ Shared by the process, measurement and vehicle models (:mod:`filters.ekf`).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -23,12 +22,11 @@ def shrink_to_size(x: np.ndarray, var: np.ndarray) -> np.ndarray:
     take noise for motion and claim information the measurement does not hold
     (errors in variables); where the component is within its noise it reads zero.
     """
-    return np.array(
-        [
-            math.copysign(math.sqrt(max(xi * xi - v, 0.0)), xi) if xi else 0.0
-            for xi, v in zip(np.asarray(x).tolist(), np.asarray(var).tolist(), strict=True)
-        ]
-    )
+    x = np.asarray(x, dtype=float)
+    var = np.asarray(var, dtype=float)
+    if x.shape != var.shape:
+        raise ValueError(f"shrink_to_size: x {x.shape} and var {var.shape} differ")
+    return kernels.shrink(x, var)
 
 
 def _product_derivatives(pairs: Sequence[Sequence[int]]) -> np.ndarray:
@@ -48,11 +46,6 @@ _DTHETA_DV = np.r_[ATT, VEL]
 _DTHETA_DV_IX = np.ix_(_DTHETA_DV, _DTHETA_DV)
 #: (attitude, velocity, rate) error indices: the body-velocity remainder's variables.
 _DTHETA_DV_DW = np.r_[ATT, VEL, RATE]
-
-
-def _axial(x: np.ndarray) -> np.ndarray:
-    """``sum_jk eps_ijk x_jk`` (3,): ``E[a x b]`` for ``x = E[a b^T]``."""
-    return np.array([x[1, 2] - x[2, 1], x[2, 0] - x[0, 2], x[0, 1] - x[1, 0]])
 
 
 def body_velocity_reset_jacobian(

@@ -10,7 +10,7 @@ from filters.algebra import (
     BODY_FRAME_MAX_CURVATURE_MPS,
     ned_velocity_curvature,
 )
-from filters.state import ATT, RATE, VEL
+from filters.state import ATT, VEL
 from filters.updates import Measurement
 from filters.vehicle_model import (
     LATERAL,
@@ -342,7 +342,3 @@ class ConstraintsMixin:
         if not self.in_body_frame():
             return np.zeros(3), np.zeros((3, 3))
         return ned_velocity_curvature(self.vel, self.P)
-
-    def _rate_body_velocity_cov(self, c: np.ndarray) -> np.ndarray:
-        """``E[dw dv_b^T]`` (3, 3) with ``dv_b = C^T (xi_v + v x dtheta)`` (``c`` = C)."""
-        return self.P[RATE, VEL] @ c - self.P[RATE, ATT] @ skew(self.vel) @ c

@@ -642,3 +642,44 @@ def augment(x: np.ndarray, p: np.ndarray, z_dim: int, m: np.ndarray, r: np.ndarr
     for i in range(z_dim):
         ha[i, n + i] = 1.0
     return xa, pa, ha, np.zeros((z_dim, z_dim))
+
+
+@njit(cache=True)
+def body_frame_gravity(
+    g: np.ndarray, p: np.ndarray, c: np.ndarray, vel: np.ndarray, att0: int, vel0: int, rate0: int
+) -> np.ndarray:
+    """Gravity (3,) as the body-frame velocity error's mean propagation reads it
+    (``NavFilter.propagate``): ``g + (P_att - tr(P_att) I) g / 2`` less
+    ``C axial(E[dw dv_b^T])``, ``E[dw dv_b^T] = P_wv C - P_wtheta [v]x C``."""
+    pa = np.ascontiguousarray(p[att0 : att0 + 3, att0 : att0 + 3])
+    tr = pa[0, 0] + pa[1, 1] + pa[2, 2]
+    g_n = g + 0.5 * (pa @ g - tr * g)
+    pwv = np.ascontiguousarray(p[rate0 : rate0 + 3, vel0 : vel0 + 3])
+    pwt = np.ascontiguousarray(p[rate0 : rate0 + 3, att0 : att0 + 3])
+    x = pwv @ c - pwt @ _skew(vel) @ c
+    ax = np.empty(3)
+    ax[0] = x[1, 2] - x[2, 1]
+    ax[1] = x[2, 0] - x[0, 2]
+    ax[2] = x[0, 1] - x[1, 0]
+    return g_n - c @ ax
+
+
+@njit(cache=True)
+def held_rows(chmask: np.ndarray, nfmask: np.ndarray, excluded: int):
+    """Rows (K,) held for a bad channel not in ``excluded`` (bit masks per row), and how
+    many of them are non-finite and saturated (``Pipeline._count_held``)."""
+    k = chmask.shape[0]
+    bad = np.zeros(k, np.bool_)
+    n_nonfinite = 0
+    n_saturated = 0
+    keep = ~excluded
+    for i in range(k):
+        if chmask[i] & keep:
+            bad[i] = True
+            if nfmask[i] & keep:
+                n_nonfinite += 1
+            else:
+                n_saturated += 1
+        elif nfmask[i] & keep:
+            n_nonfinite += 1
+    return bad, n_nonfinite, n_saturated

@@ -7,7 +7,6 @@ import numpy as np
 from filters import kernels
 from filters.algebra import (
     BODY_INJECTION_MAX_CURVATURE_MPS,
-    _axial,
     apply_reset_jacobian,
 )
 from filters.state import ATT, POS, RATE, VEL
@@ -61,8 +60,9 @@ class NominalMixin:
             # gravity's attitude curvature, C^T (P_att - tr(P_att) I) g / 2, and the
             # rate-velocity product's -E[dw x dv_b]
             m = c0
-            g_n = g_n + 0.5 * (pa @ g_n - (pa[0, 0] + pa[1, 1] + pa[2, 2]) * g_n)
-            g_n = g_n - c0 @ _axial(self._rate_body_velocity_cov(c0))
+            g_n = kernels.body_frame_gravity(
+                g_n, self.P, c0, self.vel, ATT.start, VEL.start, RATE.start
+            )
         else:
             # E[C f] = (I + (P_att - tr(P_att) I) / 2) C f  (second order in the attitude
             # error, about the estimate: the transition's -[f_n]x is built on this force;

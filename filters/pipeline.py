@@ -258,8 +258,11 @@ class Pipeline(
         #: bias estimates less its forecast, (6,): the forecast's error plus noise (NaN
         #: without a forecast compensation or before the first block).
         self.last_forecast_error = np.full(6, np.nan)
-        #: The latest epoch's record (None before the first).
-        self.latest: NavEstimate | None = None
+        # the latest epoch's NavEstimate (:attr:`latest`) and what builds it
+        self._latest: NavEstimate | None = None
+        self._latest_args: tuple | None = None
+        self._blocks_for = None
+        self._blocks: tuple = ()
         #: The run's history: each epoch's fields for :class:`Estimates` (the 12 x 12
         #: navigation covariance only; the full P goes to ``on_epoch`` and ``latest``).
         self._rows: list[tuple] = []
@@ -299,50 +302,63 @@ class Pipeline(
         c = nf.counters
         if self._converging and self._converged(p):
             self._converging = False
-        est = NavEstimate(
-            nf.t_s,
-            nf.pos,
-            vel,
-            nf.q,
-            nf.w,
-            nf.bias,
-            p,
-            pb,
-            *aoa,
-            last_gps=self.last_gps,
-            t_last_position_fix_s=nf.t_last_position_fix,
-            resets=c.gps_resets + c.gps_gap_resets,
-            rate_innovation=nf.last_rate_innovation,
-            rate_nis=self.last_rate_nis,
-            rate_rejected=bool(self.last_rate_nis > nf.gate_q),
-            forecast_fallback=bool(self.block_fallbacks),
-            forecast_fallbacks=self.n_fallbacks,
-            held_samples=self.counts["samples held (non-finite)"]
-            + self.counts["samples held (saturated)"],
-            rate_updates_rejected=c.rate_rejected,
-            faulty_channels=self.block_faulty,
-            state_blocks=tuple((name, dof) for name, dof in lay.blocks if dof),
-            dr_m=nf.dr if lay.n_dr else None,
-            aoa_states=np.array([nf.aoa_b, nf.aoa_k][: lay.n_aoa]) if lay.n_aoa else None,
-            valid=not self._converging,
+        bound = None if pb is None else pb.copy()
+        self._latest = None
+        self._latest_args = (
+            (nf.t_s, nf.pos, vel, nf.q, nf.w, nf.bias, p, bound, *aoa),
+            dict(
+                last_gps=self.last_gps,
+                t_last_position_fix_s=nf.t_last_position_fix,
+                resets=c.gps_resets + c.gps_gap_resets,
+                rate_innovation=nf.last_rate_innovation.copy(),
+                rate_nis=self.last_rate_nis,
+                rate_rejected=bool(self.last_rate_nis > nf.gate_q),
+                forecast_fallback=bool(self.block_fallbacks),
+                forecast_fallbacks=self.n_fallbacks,
+                held_samples=self.counts["samples held (non-finite)"]
+                + self.counts["samples held (saturated)"],
+                rate_updates_rejected=c.rate_rejected,
+                faulty_channels=self.block_faulty,
+                state_blocks=self._state_blocks(),
+                dr_m=nf.dr.copy() if lay.n_dr else None,
+                aoa_states=np.array([nf.aoa_b, nf.aoa_k][: lay.n_aoa]) if lay.n_aoa else None,
+                valid=not self._converging,
+            ),
         )
-        self.latest = est
+        # the epoch's row: the filter replaces its state arrays (never writes into them),
+        # and these copies are the row's own
         self._rows.append(
             (
-                est.t_s,
-                est.pos_ned_m,
-                est.vel_ned_mps,
-                est.q_nb,
-                est.omega_b_rps,
-                est.bias,
-                est.cov[:12, :12].copy(),
-                est.bound_nav,
-                est.aoa_rad,
-                est.aoa_sigma_rad,
-                est.faulty_channels,
-                est.valid,
+                nf.t_s,
+                nf.pos.copy(),
+                vel.copy(),
+                nf.q.copy(),
+                nf.w.copy(),
+                nf.bias.copy(),
+                p[:12, :12].copy(),
+                bound,
+                *aoa,
+                self.block_faulty,
+                not self._converging,
             )
         )
+
+    @property
+    def latest(self) -> NavEstimate | None:
+        """The latest epoch's record (None before the first); built when first asked for
+        (a run without an ``on_epoch`` reader builds only the last one)."""
+        if self._latest is None and self._latest_args is not None:
+            args, kwargs = self._latest_args
+            self._latest = NavEstimate(*args, **kwargs)
+        return self._latest
+
+    def _state_blocks(self) -> tuple[tuple[str, int], ...]:
+        """The layout's blocks with states, as :class:`NavEstimate` names them (cached)."""
+        blocks = self.nf.layout.blocks
+        if self._blocks_for is not blocks:
+            self._blocks_for = blocks
+            self._blocks = tuple((name, dof) for name, dof in blocks if dof)
+        return self._blocks
 
     # --------------------------------------------------------------- output
     def result(self) -> RunResult:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
@@ -128,7 +130,7 @@ class StepMixin:
             self.last_forecast_error = self._last_mean[0:6] - nf.bias[0:6] - phi_hat[0:6]
             if self._fe_persistence > 0.0:
                 self._forecast_noise(self.last_forecast_error, n_ok, kk * dt)
-            if self._fe_correct and np.all(np.isfinite(self.last_forecast_error)):
+            if self._fe_correct and math.isfinite(self.last_forecast_error.sum()):
                 # what the forecast's error left in the block, out of the state and history
                 # before the rate products are compared, from them too: left in, the rate
                 # update took the rate error it made for the sensor positions' doing (their

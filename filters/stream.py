@@ -6,6 +6,7 @@ import bisect
 
 import numpy as np
 
+from filters import kernels
 from ngnav.errors import CovarianceError
 from ngnav.layout import kinematic_features
 
@@ -227,10 +228,12 @@ class StreamMixin:
         """Count rows ``g0 .. g1 - 1`` (global) held for a bad channel not in ``excluded``
         (non-finite when one of those is, else saturated); returns the held rows (bool)."""
         b = self._base
-        bad = (self._chmask[g0 - b : g1 - b] & ~excluded) != 0
-        nonfinite = (self._nfmask[g0 - b : g1 - b] & ~excluded) != 0
-        self.counts["samples held (non-finite)"] += int(np.count_nonzero(nonfinite))
-        self.counts["samples held (saturated)"] += int(np.count_nonzero(bad & ~nonfinite))
+        bad, n_nonfinite, n_saturated = kernels.held_rows(
+            self._chmask[g0 - b : g1 - b], self._nfmask[g0 - b : g1 - b], excluded
+        )
+        if n_nonfinite or n_saturated:
+            self.counts["samples held (non-finite)"] += n_nonfinite
+            self.counts["samples held (saturated)"] += n_saturated
         return bad
 
     def _monitor_to(self, g_end: int) -> None:
