@@ -97,11 +97,8 @@ def apply_reset_jacobian(
     the velocity rows ``gvv``, ``gvt`` (:func:`body_velocity_reset_jacobian`). Returns a
     new symmetric array."""
     if gvv is None:
-        gvv = gvt = _NO_ROWS
+        gvv = gvt = kernels.ABSENT
     return kernels.reset_rows(np.asarray(p, dtype=float), ga, gvv, gvt, ATT.start, VEL.start)
-
-
-_NO_ROWS = np.zeros((0, 0))  # kernels.reset_rows: no velocity rows
 
 
 def ned_velocity_curvature(vel_ned_mps: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

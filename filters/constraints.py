@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 
+from filters import kernels
 from filters.algebra import (
     BODY_FRAME_MAX_CURVATURE_MPS,
     ned_velocity_curvature,
@@ -58,26 +59,24 @@ class ConstraintsMixin:
         blocks back, whose noise is independent of the predicted angle's (equal to the
         current one under a steady load).
         """
-        j = np.zeros(self.layout.n)
-        if not self.layout.n_aoa:
-            return j
-        ia = self.layout.aoa.start
-        j[ia] = self._lift_w
-        if self.layout.n_aoa == 2:
-            j[ia + 1] = self._lift_w * self._lift_u_jac
-        speed2 = float(vel_ned_mps @ vel_ned_mps)
-        if speed2 <= 1.0:
-            return j
-        if self._lift_dw:
-            lift = self._unblended_aoa()
-            j[VEL] += self._lift_dw * lift * vel_ned_mps / np.sqrt(speed2)
-        if self.aoa_k > 0.0:
-            wk = self._lift_w * self.aoa_k / speed2
-            j[VEL] += -2.0 * wk * self._lift_u_jac * vel_ned_mps
-            j[self.layout.bias] += -wk * (self._lift_axis @ self._bias_effect_f)
-            if self.layout.n_dr and self._lift_sg_f is not None:
-                j[self.layout.dr] += -wk * (self._lift_axis @ self._lift_sg_f)
-        return j
+        lay = self.layout
+        sg_f = self._lift_sg_f if lay.n_dr and self._lift_sg_f is not None else kernels.ABSENT
+        return kernels.aoa_jacobian(
+            lay.n,
+            lay.aoa.start,
+            lay.n_aoa,
+            self._lift_w,
+            self._lift_u_jac,
+            np.asarray(vel_ned_mps, dtype=float),
+            self._lift_dw,
+            self._unblended_aoa(),
+            self.aoa_k,
+            self._lift_axis,
+            self._bias_effect_f,
+            lay.bias.start,
+            sg_f,
+            lay.dr.start,
+        )
 
     @property
     def aoa_sigma(self) -> float:
@@ -331,8 +330,8 @@ class ConstraintsMixin:
             # a GPS velocity or a vehicle model just failed its gate: P's attitude is in
             # doubt, and the body-frame error would fuse through it
             return False
-        pa = self.P[ATT, ATT]
-        curv = 0.5 * float(np.linalg.norm(self.vel)) * float(pa[0, 0] + pa[1, 1] + pa[2, 2])
+        p, ia = self.P, ATT.start
+        curv = 0.5 * self._speed() * float(p[ia, ia] + p[ia + 1, ia + 1] + p[ia + 2, ia + 2])
         return curv <= BODY_FRAME_MAX_CURVATURE_MPS
 
     def velocity_curvature(self) -> tuple[np.ndarray, np.ndarray]:

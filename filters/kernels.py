@@ -16,6 +16,8 @@ from numba import njit
 
 from filters.state import ATT, N_NAV, POS, RATE, VEL
 
+#: An array argument that is not there (a kernel tests its size).
+ABSENT = np.zeros((0, 0))
 # the navigation blocks' first rows (numba reads them as compile-time constants)
 _POS, _VEL, _ATT, _RATE = POS.start, VEL.start, ATT.start, RATE.start
 
@@ -266,19 +268,6 @@ def _dot_last(d: np.ndarray, w: np.ndarray) -> np.ndarray:
         for c in range(3):
             out[r, c] = d[r, c, 0] * w[0] + d[r, c, 1] * w[1] + d[r, c, 2] * w[2]
     return out
-
-
-@njit(cache=True)
-def rate_jacobian_rate_columns(
-    w: np.ndarray, quad_d: np.ndarray, aided: np.ndarray, quad6_d: np.ndarray
-) -> np.ndarray:
-    """The rate products' Jacobian in the rate (nq, 3): ``D w`` (the products' derivative,
-    with the forecast's feedback) plus ``A_q D6 w`` of the aided products (``aided``
-    (nq, 6), or (nq, 0) without)."""
-    h = _dot_last(quad_d, w)
-    if aided.shape[1]:
-        h += aided @ _dot_last(quad6_d, w)
-    return h
 
 
 @njit(cache=True)
@@ -666,20 +655,114 @@ def body_frame_gravity(
 
 @njit(cache=True)
 def held_rows(chmask: np.ndarray, nfmask: np.ndarray, excluded: int):
-    """Rows (K,) held for a bad channel not in ``excluded`` (bit masks per row), and how
-    many of them are non-finite and saturated (``Pipeline._count_held``)."""
+    """Rows (K,) held for a bad channel not in ``excluded`` (bit masks per row), their
+    number, and how many rows have such a channel non-finite or else saturated
+    (``Pipeline._count_held``)."""
     k = chmask.shape[0]
     bad = np.zeros(k, np.bool_)
+    n_bad = 0
     n_nonfinite = 0
     n_saturated = 0
     keep = ~excluded
     for i in range(k):
         if chmask[i] & keep:
             bad[i] = True
+            n_bad += 1
             if nfmask[i] & keep:
                 n_nonfinite += 1
             else:
                 n_saturated += 1
         elif nfmask[i] & keep:
             n_nonfinite += 1
-    return bad, n_nonfinite, n_saturated
+    return bad, n_bad, n_nonfinite, n_saturated
+
+
+@njit(cache=True)
+def aoa_jacobian(
+    n: int,
+    aoa0: int,
+    n_aoa: int,
+    lift_w: float,
+    lift_u_jac: float,
+    vel: np.ndarray,
+    lift_dw: float,
+    lift: float,
+    aoa_k: float,
+    lift_axis: np.ndarray,
+    bias_effect_f: np.ndarray,
+    bias0: int,
+    lift_sg_f: np.ndarray,
+    dr0: int,
+) -> np.ndarray:
+    """``d alpha / d(error state)`` (n,) (``NavFilter.aoa_jacobian``, which says why):
+    the law's states from column ``aoa0``, the velocity through the speed (``vel`` (3,)
+    NED), the force biases from ``bias0`` and, unless ``lift_sg_f`` is (0, 0), the sensor
+    positions from ``dr0`` through the load."""
+    j = np.zeros(n)
+    if n_aoa == 0:
+        return j
+    j[aoa0] = lift_w
+    if n_aoa == 2:
+        j[aoa0 + 1] = lift_w * lift_u_jac
+    speed2 = vel[0] * vel[0] + vel[1] * vel[1] + vel[2] * vel[2]
+    if speed2 <= 1.0:
+        return j
+    v = _VEL
+    if lift_dw != 0.0:
+        speed = math.sqrt(speed2)
+        for a in range(3):
+            j[v + a] += lift_dw * lift * vel[a] / speed
+    if aoa_k > 0.0:
+        wk = lift_w * aoa_k / speed2
+        for a in range(3):
+            j[v + a] += -2.0 * wk * lift_u_jac * vel[a]
+        jb = lift_axis @ np.ascontiguousarray(bias_effect_f)
+        for i in range(jb.shape[0]):
+            j[bias0 + i] += -wk * jb[i]
+        if lift_sg_f.shape[0]:
+            js = lift_axis @ np.ascontiguousarray(lift_sg_f)
+            for i in range(js.shape[0]):
+                j[dr0 + i] += -wk * js[i]
+    return j
+
+
+@njit(cache=True)
+def rate_model(
+    w_block: np.ndarray,
+    pairs: np.ndarray,
+    rate_var: np.ndarray,
+    h_base: np.ndarray,
+    quad_d: np.ndarray,
+    aided: np.ndarray,
+    quad6_d: np.ndarray,
+    sg: np.ndarray,
+    dr: np.ndarray,
+    axes: np.ndarray,
+    solve_t: np.ndarray,
+    dr0: int,
+):
+    """The block mean (nq,) of the rate products over the rates ``w_block`` (K, 3) and
+    their Jacobian (nq, n) (``NavFilter.rate_model``, which says why).
+
+    ``rate_var`` (3,) shrinks the mean rate the Jacobian is taken at (size 0: not
+    shrunk); ``h_base`` (nq, n) the Jacobian's constant part; ``quad_d`` (nq, 3, 3) the
+    products' derivatives (with the forecast's feedback); ``aided`` (nq, 6) what aided
+    products leave in the solved ones (nq, 0 without) with ``quad6_d`` (6, 3, 3) their
+    derivatives; with sensor-position states (``sg`` (k, 3N), else (0, 0)) their columns
+    from ``dr0`` and the rate derivative of what the nominal removes for them at the
+    positions ``dr`` (3N,), sensing axes ``axes`` (N, 3) and solve ``solve_t`` (k, N).
+    """
+    pred, w_mean = block_products(w_block, pairs)
+    if rate_var.shape[0]:
+        w_mean = shrink(w_mean, rate_var)
+    h = h_base.copy()
+    r = _RATE
+    hr = _dot_last(quad_d, w_mean)
+    if aided.shape[1]:
+        hr += aided @ _dot_last(quad6_d, w_mean)
+    if sg.shape[0]:
+        nd = sg.shape[1]
+        h[:, dr0 : dr0 + nd] = sg[6:]
+        hr += geometry_rate_jacobian(w_mean, dr, axes, solve_t)[6:]
+    h[:, r : r + 3] = hr
+    return pred, h

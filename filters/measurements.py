@@ -14,6 +14,8 @@ from ngnav.rotation import (
     skew,
 )
 
+_NO_VAR = np.zeros(0)  # kernels.rate_model: the rate not shrunk
+
 
 class MeasurementsMixin:
     """Rate products, zero rate at rest, static biases, GPS position and velocity."""
@@ -41,18 +43,22 @@ class MeasurementsMixin:
         With ``quad_feedback`` the rate columns also carry the forecast
         compensation's return of the rate error, ``E_q J6(w)``.
         """
-        pred, w_mean = kernels.block_products(w_block, self.quad_pairs)
-        if rate_var is not None:
-            w_mean = kernels.shrink(w_mean, rate_var)
-        h = self._h_rate_base.copy()
-        # with aided products the solved ones hold A_q (q(w) - q(w_hat)) of them
-        h[:, RATE] = kernels.rate_jacobian_rate_columns(
-            w_mean, self._quad_d, self._aided_rate_cols, self._quad6_d
+        lay = self.layout
+        with_dr = bool(lay.n_dr)
+        return kernels.rate_model(
+            np.asarray(w_block, dtype=float),
+            self.quad_pairs,
+            _NO_VAR if rate_var is None else np.asarray(rate_var, dtype=float),
+            self._h_rate_base,
+            self._quad_d,
+            self._aided_rate_cols,
+            self._quad6_d,
+            sg if with_dr else kernels.ABSENT,
+            self.dr,
+            self.sensor_axes_b if with_dr else kernels.ABSENT,
+            self._solve_t if with_dr else kernels.ABSENT,
+            lay.dr.start,
         )
-        if self.layout.n_dr:
-            h[:, self.layout.dr] = sg[6:]
-            h[:, RATE] += self.geometry_rate_jacobian(w_mean)[6:]
-        return pred, h
 
     def measure_rate(
         self,

@@ -168,8 +168,7 @@ class NominalMixin:
         dth = dx[ATT]
         v_old = self.vel
         body = self.in_body_frame() and (
-            0.5 * float(np.linalg.norm(v_old)) * float(dth @ dth)
-            <= BODY_INJECTION_MAX_CURVATURE_MPS
+            0.5 * self._speed() * float(dth @ dth) <= BODY_INJECTION_MAX_CURVATURE_MPS
         )
         # body-style, the body velocity takes the correction and the corrected attitude
         # carries it

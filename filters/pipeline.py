@@ -354,10 +354,10 @@ class Pipeline(
 
     def _state_blocks(self) -> tuple[tuple[str, int], ...]:
         """The layout's blocks with states, as :class:`NavEstimate` names them (cached)."""
-        blocks = self.nf.layout.blocks
-        if self._blocks_for is not blocks:
-            self._blocks_for = blocks
-            self._blocks = tuple((name, dof) for name, dof in blocks if dof)
+        lay = self.nf.layout
+        if self._blocks_for is not lay:
+            self._blocks_for = lay
+            self._blocks = tuple((name, dof) for name, dof in lay.blocks if dof)
         return self._blocks
 
     # --------------------------------------------------------------- output

@@ -11,8 +11,6 @@ from ngnav.rotation import (
     dcm_from_quat,
 )
 
-_NONE = np.zeros((0, 0))  # a kernel's "not there"
-
 
 class ProcessMixin:
     """F and Q for a block, filterpy's predict, and the noise added beside the transition."""
@@ -98,7 +96,7 @@ class ProcessMixin:
         # A_m q(w_hat)); with sensor-position states the removed S G(w_hat) dr_hat is off
         # by its rate derivative times the rate error
         quad_into = self._quad_into_features
-        sg_, gw, dr0 = _NONE, _NONE, 0
+        sg_, gw, dr0 = kernels.ABSENT, kernels.ABSENT, 0
         if self.layout.n_dr:
             sg_, gw, dr0 = sg, self.geometry_rate_jacobian(self.w), self.layout.dr.start
         fc = kernels.error_dynamics(
@@ -107,7 +105,7 @@ class ProcessMixin:
             c,
             self._bias_effect_f,
             self.layout.bias.start,
-            _NONE if quad_into is None else quad_into,
+            kernels.ABSENT if quad_into is None else quad_into,
             self._quad6_d,
             self.w,
             sg_,

@@ -54,7 +54,7 @@ class StepMixin:
             self._switch_solve(excluded)
             se = self._se
         xs = self._features(i0 + 1, i1 + 1, excluded, nf.w)
-        bad = self._count_held(i0 + 1, i1 + 1, excluded)
+        bad, n_bad = self._count_held(i0 + 1, i1 + 1, excluded)
         kk = xs.shape[0]
         window = self._window
         e = self._e + 1
@@ -69,11 +69,11 @@ class StepMixin:
             phi_hat[6:] = (wx * wx, wy * wy, wz * wz, wy * wz, wx * wz, wx * wy)
             xs -= se @ phi_hat
         self.block_faulty = excluded
-        if np.any(bad):
+        if n_bad:
             fill = self._last_mean if phi_hat is None else phi_hat[self._cols] + nf.bias
             xs[bad] = fill
             self.block_faulty |= int(np.bitwise_or.reduce(self._chmask[i0 + 1 - b : i1 + 1 - b]))
-        n_ok = kk - int(np.count_nonzero(bad))
+        n_ok = kk - n_bad
         sg = sg_true = None
         if self._with_dr:
             # The sensor-position states see the block's angular acceleration as

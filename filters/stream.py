@@ -224,17 +224,18 @@ class StreamMixin:
                     del series[n_rate:]
                 self._lost_block(i1)
 
-    def _count_held(self, g0: int, g1: int, excluded: int) -> np.ndarray:
+    def _count_held(self, g0: int, g1: int, excluded: int) -> tuple[np.ndarray, int]:
         """Count rows ``g0 .. g1 - 1`` (global) held for a bad channel not in ``excluded``
-        (non-finite when one of those is, else saturated); returns the held rows (bool)."""
+        (non-finite when one of those is, else saturated); returns the held rows (bool)
+        and their number."""
         b = self._base
-        bad, n_nonfinite, n_saturated = kernels.held_rows(
+        bad, n_bad, n_nonfinite, n_saturated = kernels.held_rows(
             self._chmask[g0 - b : g1 - b], self._nfmask[g0 - b : g1 - b], excluded
         )
         if n_nonfinite or n_saturated:
             self.counts["samples held (non-finite)"] += n_nonfinite
             self.counts["samples held (saturated)"] += n_saturated
-        return bad
+        return bad, n_bad
 
     def _monitor_to(self, g_end: int) -> None:
         """Run the channels' health tests up to sample ``g_end`` (global, exclusive).

@@ -16,8 +16,6 @@ from filterpy.kalman import update as kf_update
 
 from filters import kernels
 
-_NO_CROSS = np.zeros((0, 0))  # kernels.innovation_cov's "no cross-covariance"
-
 
 class Measurement(NamedTuple):
     """One measurement as filterpy's ``update`` takes it, at a zero error state.
@@ -44,7 +42,7 @@ class Measurement(NamedTuple):
     def innovation_cov(self, p: np.ndarray) -> np.ndarray:
         """``S = H P H^T + R`` (plus ``H M + M^T H^T`` with a cross-covariance ``M``)."""
         return kernels.innovation_cov(
-            self.H, p, self.R, _NO_CROSS if self.cross is None else self.cross
+            self.H, p, self.R, kernels.ABSENT if self.cross is None else self.cross
         )
 
 
