@@ -11,7 +11,6 @@ import numpy as np
 
 from filters import kernels
 from filters.state import ATT, RATE, VEL
-from ngnav.rotation import skew
 
 
 def shrink_to_size(x: np.ndarray, var: np.ndarray) -> np.ndarray:
@@ -64,11 +63,11 @@ def body_velocity_reset_jacobian(
     ``(I + [dtheta]x / 2) e_theta``: ``exp(dtheta') = exp(dtheta + e) exp(-dtheta)``, whose
     first-order term is ``[dtheta, e] / 2``). Both (3, 3).
     """
-    st = skew(np.asarray(dtheta, dtype=float))
-    sv = skew(np.asarray(vel_ned_mps, dtype=float))
-    gvv = np.eye(3) + st
-    gvt = st @ sv - skew(np.asarray(dxi_v, dtype=float)) - 0.5 * sv @ st
-    return gvv, gvt
+    return kernels.body_velocity_reset_rows(
+        np.asarray(dtheta, dtype=float),
+        np.asarray(dxi_v, dtype=float),
+        np.asarray(vel_ned_mps, dtype=float),
+    )
 
 
 def attitude_reset_jacobian(dtheta: np.ndarray) -> np.ndarray:
@@ -85,8 +84,7 @@ def attitude_reset_jacobian(dtheta: np.ndarray) -> np.ndarray:
     2.83); held, 4.9-5.0 deg and 0.92-1.00 (docs/notes/filter-notes.md, "the zero-rate
     update at rest").
     """
-    hx, hy, hz = (0.5 * np.asarray(dtheta, dtype=float)).tolist()
-    return np.array([[1.0, -hz, 0.0], [hz, 1.0, 0.0], [-hy, hx, 1.0]])
+    return kernels.attitude_reset_rows(np.asarray(dtheta, dtype=float))
 
 
 def apply_reset_jacobian(
@@ -139,9 +137,6 @@ def force_curvature_variance(f_n: np.ndarray, p_att: np.ndarray) -> np.ndarray:
     ``(u_i^2 + (f.u) P_ii) / 4 + f_i^2 |P|_F^2 / 2 - f_i (P u)_i`` with ``u = P f``;
     (m/s^2)^2.
     """
-    f = np.asarray(f_n, dtype=float)
-    u = p_att @ f
-    pu = p_att @ u
-    return 0.25 * (u * u + float(f @ u) * np.diagonal(p_att)) + f * (
-        0.5 * float(np.sum(p_att * p_att)) * f - pu
+    return kernels.force_curvature_variance(
+        np.asarray(f_n, dtype=float), np.asarray(p_att, dtype=float)
     )

@@ -73,6 +73,8 @@ class FeatureModelMixin:
         blocks, the transition's and the rate measurement's bias columns, the caches."""
         n = self.layout.n
         k = 6 + self.layout.nq
+        #: The rate products that still measure the rate (the rate update's dof).
+        self.rate_dof = int(self.rate_rows.sum())
         self._sww = self.noise.feature_cov[0:3, 0:3]
         # the rate's noise over one block (FilterNoise.block_wdot_cov): the loop's mapped
         # noise plus the positive part of what the mapping took off

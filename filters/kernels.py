@@ -436,7 +436,9 @@ def error_dynamics(
     w: np.ndarray,
     sg: np.ndarray,
     dr0: int,
-    gw: np.ndarray,
+    dr: np.ndarray,
+    axes: np.ndarray,
+    solve_t: np.ndarray,
 ) -> np.ndarray:
     """The error dynamics' navigation rows ``F`` (12, n) over a block
     (``NavFilter.propagation_matrices``).
@@ -446,7 +448,9 @@ def error_dynamics(
     ``bias0``) leave in the force; ``quad_into`` (6, 6) what the rate products' error
     reaches ``[wdot, f]`` through (``quad6_d`` (6, 3, 3) their derivative, ``w`` (3,) the
     rate), or (0, 0); ``sg`` (k, 3N) the features' sensitivity to the sensor positions
-    (from column ``dr0``) and ``gw`` (k, 3) its rate derivative, or (0, 0) without.
+    (from column ``dr0``), or (0, 0) without, and the rate derivative of what the
+    nominal removes for the positions (``dr`` (3N,), ``axes`` (N, 3), ``solve_t`` (k, N):
+    :func:`geometry_rate_jacobian`).
     """
     fc = fc_base.copy()
     v, a, r = _VEL, _ATT, _RATE
@@ -467,6 +471,7 @@ def error_dynamics(
         nd = sg.shape[1]
         fc[r : r + 3, dr0 : dr0 + nd] = -sg[0:3]
         fc[v : v + 3, dr0 : dr0 + nd] = -(c @ np.ascontiguousarray(sg[3:6]))
+        gw = geometry_rate_jacobian(w, dr, axes, solve_t)
         fc[r : r + 3, r : r + 3] -= gw[0:3]
         fc[v : v + 3, r : r + 3] -= c @ np.ascontiguousarray(gw[3:6])
     return fc
@@ -524,16 +529,31 @@ def inject(q: np.ndarray, v_old: np.ndarray, dth: np.ndarray, dv: np.ndarray, bo
         n = -n
     q_new = np.empty(4)
     q_new[0], q_new[1], q_new[2], q_new[3] = w / n, x / n, y / n, z / n
+    ga = attitude_reset_rows(dth)
+    if not body:
+        return q_new, v_new, ga, np.zeros((0, 0)), np.zeros((0, 0))
+    gvv, gvt = body_velocity_reset_rows(dth, dv, v_old)
+    return q_new, v_new, ga, gvv, gvt
+
+
+@njit(cache=True)
+def attitude_reset_rows(dth: np.ndarray) -> np.ndarray:
+    """``I + [dth]x / 2`` with its heading column held at ``e_z`` (3, 3)
+    (``algebra.attitude_reset_jacobian``, which says why)."""
     hx, hy, hz = 0.5 * dth[0], 0.5 * dth[1], 0.5 * dth[2]
     ga = np.eye(3)
     ga[0, 1], ga[1, 0], ga[2, 0], ga[2, 1] = -hz, hz, -hy, hx
-    if not body:
-        return q_new, v_new, ga, np.zeros((0, 0)), np.zeros((0, 0))
+    return ga
+
+
+@njit(cache=True)
+def body_velocity_reset_rows(dth: np.ndarray, dv: np.ndarray, v: np.ndarray):
+    """``(G_vv, G_vtheta)`` (3, 3) each (``algebra.body_velocity_reset_jacobian``)."""
     st = _skew(dth)
-    sv = _skew(v_old)
+    sv = _skew(v)
     gvv = np.eye(3) + st
     gvt = st @ sv - _skew(dv) - 0.5 * sv @ st
-    return q_new, v_new, ga, gvv, gvt
+    return gvv, gvt
 
 
 @njit(cache=True)
@@ -766,3 +786,18 @@ def rate_model(
         hr += geometry_rate_jacobian(w_mean, dr, axes, solve_t)[6:]
     h[:, r : r + 3] = hr
     return pred, h
+
+
+@njit(cache=True)
+def add_curvature_noise(
+    p: np.ndarray, acc: np.ndarray, f_n: np.ndarray, t_s: float, att0: int, vel0: int
+) -> None:
+    """Grow the force curvature's random constant over ``t_s`` s, in place
+    (``NavFilter._add_curvature_noise``): ``acc`` (3,) each NED axis's 1-sigma velocity
+    error from it, m/s, grows by ``sd(b) t_s`` and P's velocity variances by the
+    difference of the squares."""
+    var_b = force_curvature_variance(f_n, np.ascontiguousarray(p[att0 : att0 + 3, att0 : att0 + 3]))
+    for i in range(3):
+        new = acc[i] + math.sqrt(max(var_b[i], 0.0)) * t_s
+        p[vel0 + i, vel0 + i] += new * new - acc[i] * acc[i]
+        acc[i] = new

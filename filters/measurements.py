@@ -91,7 +91,7 @@ class MeasurementsMixin:
             pred = pred + sg[6:] @ self.dr
         m = None if block is None else self.rate_noise_cross(*block, held)
         rows = self.rate_rows
-        if not rows.all():
+        if self.rate_dof < rows.shape[0]:
             # products an excluded channel leaves unsolved are the rate's own (aided)
             z = (quad_mean - pred)[rows]
             return Measurement(z, h[rows], r[np.ix_(rows, rows)], None if m is None else m[:, rows])

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from filters.algebra import ned_velocity_curvature
 from filters.alignment import AlignmentMixin
 from filters.ekf import NavFilter
 from filters.exclusion import ExclusionMixin, SuspectsMixin
@@ -294,7 +295,7 @@ class Pipeline(
         vel = nf.vel
         if nf.in_body_frame():
             # the NED velocity a user reads: its second-order part's mean and covariance
-            mc, cc = nf.velocity_curvature()
+            mc, cc = ned_velocity_curvature(nf.vel, nf.P)
             vel = vel + mc
             p[VEL, VEL] += cc
         lay = nf.layout

@@ -62,12 +62,7 @@ class ProcessMixin:
         if self.in_body_frame():
             acc[:] = 0.0
             return
-        var_b = kernels.force_curvature_variance(f_n, self.P[ATT, ATT])
-        new = acc + np.sqrt(np.maximum(var_b, 0.0)) * t_s
-        d = new * new - acc * acc
-        acc[:] = new
-        v = self.P[VEL, VEL]
-        v[np.diag_indices(3)] += d
+        kernels.add_curvature_noise(self.P, acc, f_n, t_s, ATT.start, VEL.start)
 
     def propagation_matrices(
         self,
@@ -96,9 +91,7 @@ class ProcessMixin:
         # A_m q(w_hat)); with sensor-position states the removed S G(w_hat) dr_hat is off
         # by its rate derivative times the rate error
         quad_into = self._quad_into_features
-        sg_, gw, dr0 = kernels.ABSENT, kernels.ABSENT, 0
-        if self.layout.n_dr:
-            sg_, gw, dr0 = sg, self.geometry_rate_jacobian(self.w), self.layout.dr.start
+        with_dr = bool(self.layout.n_dr)
         fc = kernels.error_dynamics(
             self._fc_base,
             f_n,
@@ -108,9 +101,11 @@ class ProcessMixin:
             kernels.ABSENT if quad_into is None else quad_into,
             self._quad6_d,
             self.w,
-            sg_,
-            dr0,
-            gw,
+            sg if with_dr else kernels.ABSENT,
+            self.layout.dr.start,
+            self.dr,
+            self.sensor_axes_b if with_dr else kernels.ABSENT,
+            self._solve_t if with_dr else kernels.ABSENT,
         )
         phi = kernels.transition(fc, t)
         q = kernels.rotated_nav_noise(c, self._q12_body(k, dt), self._q_walks(t))

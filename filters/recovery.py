@@ -138,7 +138,7 @@ class RecoveryMixin:
         if self.keep_estimates and self._nq:  # nor a rate update: the same for blocks
             self._rate_nis.append(np.nan)
             self._rate_nis_t.append(float(self._t[i1 - self._base]))
-            self._rate_nis_dof.append(int(self.nf.rate_rows.sum()))
+            self._rate_nis_dof.append(self.nf.rate_dof)
         if self._lost is None:
             self._record()
         elif self.keep_estimates and self._rows:

@@ -161,7 +161,7 @@ class StepMixin:
             if self.keep_estimates:
                 self._rate_nis.append(self.last_rate_nis)
                 self._rate_nis_t.append(nf.t_s)
-                self._rate_nis_dof.append(int(nf.rate_rows.sum()))
+                self._rate_nis_dof.append(nf.rate_dof)
             if p_bound is not None and nis is not None and nis <= nf.gate_q:
                 _, hb = nf.rate_model(truth.omega_b_rps[i0 + 1 : i1 + 1], sg_true)
                 rows = nf.rate_rows  # the products still solved (channels excluded)
