@@ -46,14 +46,18 @@ def dcm(q: np.ndarray) -> np.ndarray:
 @njit(cache=True)
 def rotate_right(q: np.ndarray, rx: float, ry: float, rz: float) -> np.ndarray:
     """``q * exp(r)`` (4,), renormalised (:func:`ngnav.rotation.quat_rotate_by_rotvec`)."""
-    a = math.sqrt(rx * rx + ry * ry + rz * rz)
-    k1 = 0.5 - a * a / 48.0 if a < 1e-4 else math.sin(0.5 * a) / a
-    ew, ex, ey, ez = math.cos(0.5 * a), k1 * rx, k1 * ry, k1 * rz
-    pw, px, py, pz = q[0], q[1], q[2], q[3]
-    w = pw * ew - px * ex - py * ey - pz * ez
-    x = pw * ex + px * ew + py * ez - pz * ey
-    y = pw * ey - px * ez + py * ew + pz * ex
-    z = pw * ez + px * ey - py * ex + pz * ew
+    return _unit_product(q, _exp(rx, ry, rz))
+
+
+@njit(cache=True)
+def _unit_product(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """The Hamilton product ``p * q`` (4,) scaled to unit norm, scalar part non-negative."""
+    pw, px, py, pz = p[0], p[1], p[2], p[3]
+    qw, qx, qy, qz = q[0], q[1], q[2], q[3]
+    w = pw * qw - px * qx - py * qy - pz * qz
+    x = pw * qx + px * qw + py * qz - pz * qy
+    y = pw * qy - px * qz + py * qw + pz * qx
+    z = pw * qz + px * qy - py * qx + pz * qw
     n = math.sqrt(w * w + x * x + y * y + z * z)
     if w < 0.0:
         n = -n
@@ -517,18 +521,7 @@ def inject(q: np.ndarray, v_old: np.ndarray, dth: np.ndarray, dv: np.ndarray, bo
         v_new = dcm(e) @ u
     else:
         v_new = v_old + dv
-    # exp(dth) * q, renormalised with a non-negative scalar part
-    pw, px, py, pz = e[0], e[1], e[2], e[3]
-    qw, qx, qy, qz = q[0], q[1], q[2], q[3]
-    w = pw * qw - px * qx - py * qy - pz * qz
-    x = pw * qx + px * qw + py * qz - pz * qy
-    y = pw * qy - px * qz + py * qw + pz * qx
-    z = pw * qz + px * qy - py * qx + pz * qw
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    if w < 0.0:
-        n = -n
-    q_new = np.empty(4)
-    q_new[0], q_new[1], q_new[2], q_new[3] = w / n, x / n, y / n, z / n
+    q_new = _unit_product(e, q)  # exp(dth) * q
     ga = attitude_reset_rows(dth)
     if not body:
         return q_new, v_new, ga, np.zeros((0, 0)), np.zeros((0, 0))
