@@ -1,10 +1,16 @@
-"""Compiled inner loops of a filter step (numba): the arithmetic of the process model.
+"""Compiled inner loops of a filter step (numba): its arithmetic outside filterpy.
 
-Each kernel computes what the numpy expression beside its caller computed, in the
-same order of operations where that matters, without numpy's per-call overhead:
-a block's step was some 400 small numpy calls around filterpy's predict and
-update, ten times the cost of filterpy alone (``ngnav bench-filter``). Compiled
-on first use and cached on disk (``cache=True``: the next process loads it).
+Each kernel is the one implementation of its formula (the ``NavFilter`` methods and
+:mod:`filters.algebra` call it, and say why the formula is what it is). A block's step
+was some 400 small numpy calls around filterpy's predict and update, ten times the
+cost of filterpy alone (``ngnav bench-filter``); the call overhead, not the
+arithmetic, was the cost. Compiled on first use and cached on disk (``cache=True``:
+the next process loads it).
+
+One file on purpose, grouped by the model it serves (nominal and process, measurements,
+channel health): numba drops a cached kernel when its own file changes, not when a
+kernel it calls in another file does, so a split would leave stale compiled callers
+after an edit to a shared helper.
 """
 
 from __future__ import annotations
@@ -20,6 +26,9 @@ from filters.state import ATT, N_NAV, POS, RATE, VEL
 ABSENT = np.zeros((0, 0))
 # the navigation blocks' first rows (numba reads them as compile-time constants)
 _POS, _VEL, _ATT, _RATE = POS.start, VEL.start, ATT.start, RATE.start
+
+
+# -------- rotations and small helpers
 
 
 @njit(cache=True)
@@ -67,6 +76,25 @@ def _unit_product(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
+def _exp(rx: float, ry: float, rz: float) -> np.ndarray:
+    """The quaternion (4,) of a rotation vector (rad), the series of sin(x)/x below 1e-4."""
+    a = math.sqrt(rx * rx + ry * ry + rz * rz)
+    k1 = 0.5 - a * a / 48.0 if a < 1e-4 else math.sin(0.5 * a) / a
+    e = np.empty(4)
+    e[0], e[1], e[2], e[3] = math.cos(0.5 * a), k1 * rx, k1 * ry, k1 * rz
+    return e
+
+
+@njit(cache=True)
+def _skew(v: np.ndarray) -> np.ndarray:
+    s = np.zeros((3, 3))
+    s[0, 1], s[0, 2] = -v[2], v[1]
+    s[1, 0], s[1, 2] = v[2], -v[0]
+    s[2, 0], s[2, 1] = -v[1], v[0]
+    return s
+
+
+@njit(cache=True)
 def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     out = np.empty_like(a)
     for s in range(a.shape[0]):
@@ -74,6 +102,29 @@ def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         out[s, 1] = a[s, 2] * b[s, 0] - a[s, 0] * b[s, 2]
         out[s, 2] = a[s, 0] * b[s, 1] - a[s, 1] * b[s, 0]
     return out
+
+
+@njit(cache=True)
+def shrink(x: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """``sign(x) sqrt(max(0, x^2 - var))`` per component (``algebra.shrink_to_size``)."""
+    out = np.empty(x.shape[0])
+    for i in range(x.shape[0]):
+        xi = x[i]
+        out[i] = math.copysign(math.sqrt(max(xi * xi - var[i], 0.0)), xi) if xi != 0.0 else 0.0
+    return out
+
+
+@njit(cache=True)
+def _dot_last(d: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``d @ w`` (m, 3) for ``d`` (m, 3, 3): products' derivatives at the rate ``w`` (3,)."""
+    out = np.empty((d.shape[0], 3))
+    for r in range(d.shape[0]):
+        for c in range(3):
+            out[r, c] = d[r, c, 0] * w[0] + d[r, c, 1] * w[1] + d[r, c, 2] * w[2]
+    return out
+
+
+# -------- the nominal state: mechanisation, injection, resets
 
 
 @njit(cache=True)
@@ -139,13 +190,168 @@ def mechanise(
 
 
 @njit(cache=True)
-def shrink(x: np.ndarray, var: np.ndarray) -> np.ndarray:
-    """``sign(x) sqrt(max(0, x^2 - var))`` per component (``algebra.shrink_to_size``)."""
-    out = np.empty(x.shape[0])
-    for i in range(x.shape[0]):
-        xi = x[i]
-        out[i] = math.copysign(math.sqrt(max(xi * xi - var[i], 0.0)), xi) if xi != 0.0 else 0.0
+def body_frame_gravity(
+    g: np.ndarray, p: np.ndarray, c: np.ndarray, vel: np.ndarray, att0: int, vel0: int, rate0: int
+) -> np.ndarray:
+    """Gravity (3,) as the body-frame velocity error's mean propagation reads it
+    (``NavFilter.propagate``): ``g + (P_att - tr(P_att) I) g / 2`` less
+    ``C axial(E[dw dv_b^T])``, ``E[dw dv_b^T] = P_wv C - P_wtheta [v]x C``."""
+    pa = np.ascontiguousarray(p[att0 : att0 + 3, att0 : att0 + 3])
+    tr = pa[0, 0] + pa[1, 1] + pa[2, 2]
+    g_n = g + 0.5 * (pa @ g - tr * g)
+    pwv = np.ascontiguousarray(p[rate0 : rate0 + 3, vel0 : vel0 + 3])
+    pwt = np.ascontiguousarray(p[rate0 : rate0 + 3, att0 : att0 + 3])
+    x = pwv @ c - pwt @ _skew(vel) @ c
+    ax = np.empty(3)
+    ax[0] = x[1, 2] - x[2, 1]
+    ax[1] = x[2, 0] - x[0, 2]
+    ax[2] = x[0, 1] - x[1, 0]
+    return g_n - c @ ax
+
+
+@njit(cache=True)
+def remove_feature_residual(
+    q: np.ndarray,
+    w: np.ndarray,
+    vel: np.ndarray,
+    pos: np.ndarray,
+    r: np.ndarray,
+    t_s: float,
+    w_blk: np.ndarray,
+    dt: float,
+):
+    """A constant error ``r`` (6,) in a block's solved ``[wdot, f]`` out of the nominal
+    state propagated with it for ``t_s`` s (``NavFilter.remove_feature_residual``) and out
+    of the block's rates ``w_blk`` (K, 3) at its samples (interval ``dt``). Returns the
+    new rate, attitude, velocity, position and block rates."""
+    t2 = 0.5 * t_s * t_s
+    c = dcm(q)
+    w_new = w - t_s * r[0:3]
+    q_new = rotate_right(q, -t2 * r[0], -t2 * r[1], -t2 * r[2])
+    dv = c @ np.ascontiguousarray(r[3:6])
+    vel_new = vel - t_s * dv
+    pos_new = pos - t2 * dv
+    w_out = w_blk.copy()
+    for s in range(w_blk.shape[0]):
+        for a in range(3):
+            w_out[s, a] = w_blk[s, a] - ((s + 1) * dt) * r[a]
+    return w_new, q_new, vel_new, pos_new, w_out
+
+
+@njit(cache=True)
+def inject(q: np.ndarray, v_old: np.ndarray, dth: np.ndarray, dv: np.ndarray, body: bool):
+    """A correction's attitude and velocity and its reset Jacobian's rows
+    (``NavFilter._inject``).
+
+    ``q`` (4,) ``q_nb``; ``v_old`` (3,) the NED velocity; ``dth`` (3,) the NED attitude
+    correction; ``dv`` (3,) the velocity correction, body-style when ``body`` (the body
+    velocity takes it and the corrected attitude carries it), else NED. Returns the new
+    ``q`` (4,) and velocity (3,), the attitude rows ``ga`` (3, 3)
+    (``algebra.attitude_reset_jacobian``) and, body-style, the velocity rows ``gvv``,
+    ``gvt`` (3, 3) (``algebra.body_velocity_reset_jacobian``; (0, 0) otherwise).
+    """
+    e = _exp(dth[0], dth[1], dth[2])
+    if body:
+        u = v_old + dv
+        u[0] += v_old[1] * dth[2] - v_old[2] * dth[1]
+        u[1] += v_old[2] * dth[0] - v_old[0] * dth[2]
+        u[2] += v_old[0] * dth[1] - v_old[1] * dth[0]
+        v_new = dcm(e) @ u
+    else:
+        v_new = v_old + dv
+    q_new = _unit_product(e, q)  # exp(dth) * q
+    ga = attitude_reset_rows(dth)
+    if not body:
+        return q_new, v_new, ga, np.zeros((0, 0)), np.zeros((0, 0))
+    gvv, gvt = body_velocity_reset_rows(dth, dv, v_old)
+    return q_new, v_new, ga, gvv, gvt
+
+
+@njit(cache=True)
+def attitude_reset_rows(dth: np.ndarray) -> np.ndarray:
+    """``I + [dth]x / 2`` with its heading column held at ``e_z`` (3, 3)
+    (``algebra.attitude_reset_jacobian``, which says why)."""
+    hx, hy, hz = 0.5 * dth[0], 0.5 * dth[1], 0.5 * dth[2]
+    ga = np.eye(3)
+    ga[0, 1], ga[1, 0], ga[2, 0], ga[2, 1] = -hz, hz, -hy, hx
+    return ga
+
+
+@njit(cache=True)
+def body_velocity_reset_rows(dth: np.ndarray, dv: np.ndarray, v: np.ndarray):
+    """``(G_vv, G_vtheta)`` (3, 3) each (``algebra.body_velocity_reset_jacobian``)."""
+    st = _skew(dth)
+    sv = _skew(v)
+    gvv = np.eye(3) + st
+    gvt = st @ sv - _skew(dv) - 0.5 * sv @ st
+    return gvv, gvt
+
+
+@njit(cache=True)
+def reset_rows(
+    p: np.ndarray, ga: np.ndarray, gvv: np.ndarray, gvt: np.ndarray, att0: int, vel0: int
+) -> np.ndarray:
+    """``G P G^T`` (n, n), symmetrised, for ``G`` the identity but its attitude rows ``ga``
+    (3, 3) and, unless ``gvv`` is (0, 0), its velocity rows ``[gvv, gvt]`` on the
+    velocity and attitude columns (``algebra.apply_reset_jacobian``)."""
+    out = p.copy()
+    n = p.shape[0]
+    a = slice(att0, att0 + 3)
+    v = slice(vel0, vel0 + 3)
+    body = gvv.shape[0] > 0
+    rows_t = np.ascontiguousarray(p[a, :])
+    if body:
+        rows_v = np.ascontiguousarray(p[v, :])
+        out[v, :] = gvv @ rows_v + gvt @ rows_t
+    out[a, :] = ga @ rows_t
+    cols_t = np.ascontiguousarray(out[:, a])
+    if body:
+        cols_v = np.ascontiguousarray(out[:, v])
+        out[:, v] = cols_v @ gvv.T + cols_t @ gvt.T
+    out[:, a] = cols_t @ ga.T
+    for i in range(n):
+        for j in range(i + 1, n):
+            s = 0.5 * (out[i, j] + out[j, i])
+            out[i, j] = s
+            out[j, i] = s
     return out
+
+
+@njit(cache=True)
+def ned_velocity_curvature(v: np.ndarray, p6: np.ndarray):
+    """Mean (3,) and covariance (3, 3) of the NED velocity's second-order part under the
+    body-frame velocity error (``algebra.ned_velocity_curvature``): ``v`` (3,) the NED
+    velocity, ``p6`` (6, 6) the covariance of ``(dtheta, xi_v)``."""
+    m = np.zeros((3, 6, 6))
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3  # eps_ijk = 1, eps_ikj = -1
+        m[i, j, 3 + k] = 1.0
+        m[i, k, 3 + j] = -1.0
+        m[i, 3 + k, j] = 1.0
+        m[i, 3 + j, k] = -1.0
+        for a in range(3):
+            m[i, i, a] -= 0.5 * v[a]
+            m[i, a, i] -= 0.5 * v[a]
+            m[i, a, a] += v[i]
+    p = np.ascontiguousarray(p6)
+    mp = np.empty((3, 6, 6))
+    for i in range(3):
+        mp[i] = m[i] @ p
+    mean = np.empty(3)
+    for i in range(3):
+        mean[i] = 0.5 * np.trace(mp[i])
+    cov = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            s = 0.0
+            for a in range(6):
+                for b in range(6):
+                    s += mp[i, a, b] * mp[j, b, a]
+            cov[i, j] = 0.5 * s
+    return mean, cov
+
+
+# -------- the process model: F, Q and the force curvature
 
 
 @njit(cache=True)
@@ -189,6 +395,74 @@ def force_curvature_variance(f_n: np.ndarray, p_att: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
+def add_curvature_noise(
+    p: np.ndarray, acc: np.ndarray, f_n: np.ndarray, t_s: float, att0: int, vel0: int
+) -> None:
+    """Grow the force curvature's random constant over ``t_s`` s, in place
+    (``NavFilter._add_curvature_noise``): ``acc`` (3,) each NED axis's 1-sigma velocity
+    error from it, m/s, grows by ``sd(b) t_s`` and P's velocity variances by the
+    difference of the squares."""
+    var_b = force_curvature_variance(f_n, np.ascontiguousarray(p[att0 : att0 + 3, att0 : att0 + 3]))
+    for i in range(3):
+        new = acc[i] + math.sqrt(max(var_b[i], 0.0)) * t_s
+        p[vel0 + i, vel0 + i] += new * new - acc[i] * acc[i]
+        acc[i] = new
+
+
+@njit(cache=True)
+def error_dynamics(
+    fc_base: np.ndarray,
+    f_n: np.ndarray,
+    c: np.ndarray,
+    bias_effect_f: np.ndarray,
+    bias0: int,
+    quad_into: np.ndarray,
+    quad6_d: np.ndarray,
+    w: np.ndarray,
+    sg: np.ndarray,
+    dr0: int,
+    dr: np.ndarray,
+    axes: np.ndarray,
+    solve_t: np.ndarray,
+) -> np.ndarray:
+    """The error dynamics' navigation rows ``F`` (12, n) over a block
+    (``NavFilter.propagation_matrices``).
+
+    ``fc_base`` (12, n) its constant part; ``f_n`` (3,) the force the transition reads;
+    ``c`` (3, 3) ``C_nb``; ``bias_effect_f`` (3, nb) what the biases (from column
+    ``bias0``) leave in the force; ``quad_into`` (6, 6) what the rate products' error
+    reaches ``[wdot, f]`` through (``quad6_d`` (6, 3, 3) their derivative, ``w`` (3,) the
+    rate), or (0, 0); ``sg`` (k, 3N) the features' sensitivity to the sensor positions
+    (from column ``dr0``), or (0, 0) without, and the rate derivative of what the
+    nominal removes for the positions (``dr`` (3N,), ``axes`` (N, 3), ``solve_t`` (k, N):
+    :func:`geometry_rate_jacobian`).
+    """
+    fc = fc_base.copy()
+    v, a, r = _VEL, _ATT, _RATE
+    fc[v, a + 1] = f_n[2]
+    fc[v, a + 2] = -f_n[1]
+    fc[v + 1, a] = -f_n[2]
+    fc[v + 1, a + 2] = f_n[0]
+    fc[v + 2, a] = f_n[1]
+    fc[v + 2, a + 1] = -f_n[0]
+    nb = bias_effect_f.shape[1]
+    fc[v : v + 3, bias0 : bias0 + nb] = -(c @ np.ascontiguousarray(bias_effect_f))
+    fc[a : a + 3, r : r + 3] = c
+    if quad_into.shape[0]:
+        aj = quad_into @ _dot_last(quad6_d, w)
+        fc[r : r + 3, r : r + 3] = -aj[0:3]
+        fc[v : v + 3, r : r + 3] = -(c @ np.ascontiguousarray(aj[3:6]))
+    if sg.shape[0]:
+        nd = sg.shape[1]
+        fc[r : r + 3, dr0 : dr0 + nd] = -sg[0:3]
+        fc[v : v + 3, dr0 : dr0 + nd] = -(c @ np.ascontiguousarray(sg[3:6]))
+        gw = geometry_rate_jacobian(w, dr, axes, solve_t)
+        fc[r : r + 3, r : r + 3] -= gw[0:3]
+        fc[v : v + 3, r : r + 3] -= c @ np.ascontiguousarray(gw[3:6])
+    return fc
+
+
+@njit(cache=True)
 def transition(fc: np.ndarray, t: float) -> np.ndarray:
     """``I + F t + (F t)^2 / 2 + (F t)^3 / 6`` (n, n) from ``F``'s navigation rows (12, n).
 
@@ -223,27 +497,6 @@ def rotated_nav_noise(c: np.ndarray, q12_body: np.ndarray, q_walks: np.ndarray) 
 
 
 @njit(cache=True)
-def geometry_rate_jacobian(
-    w: np.ndarray, dr: np.ndarray, axes: np.ndarray, solve_t: np.ndarray
-) -> np.ndarray:
-    """``T S`` times the rows ``(w . dr_i) theta_i + (theta_i . w) dr_i - 2 (theta_i . dr_i) w``
-    (k, 3): the rate derivative of what the nominal removes for the sensor positions
-    (``NavFilter.geometry_rate_jacobian``); ``dr`` (3N,), ``axes`` (N, 3)."""
-    n = axes.shape[0]
-    rows = np.empty((n, 3))
-    for i in range(n):
-        dx, dy, dz = dr[3 * i], dr[3 * i + 1], dr[3 * i + 2]
-        tx, ty, tz = axes[i, 0], axes[i, 1], axes[i, 2]
-        wd = dx * w[0] + dy * w[1] + dz * w[2]
-        tw = tx * w[0] + ty * w[1] + tz * w[2]
-        td = tx * dx + ty * dy + tz * dz
-        rows[i, 0] = wd * tx + tw * dx - 2.0 * td * w[0]
-        rows[i, 1] = wd * ty + tw * dy - 2.0 * td * w[1]
-        rows[i, 2] = wd * tz + tw * dz - 2.0 * td * w[2]
-    return np.ascontiguousarray(solve_t) @ rows
-
-
-@njit(cache=True)
 def geometry_jacobian(
     wdot: np.ndarray, w: np.ndarray, axes: np.ndarray, solve_rep: np.ndarray
 ) -> np.ndarray:
@@ -265,13 +518,27 @@ def geometry_jacobian(
 
 
 @njit(cache=True)
-def _dot_last(d: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """``d @ w`` (m, 3) for ``d`` (m, 3, 3): products' derivatives at the rate ``w`` (3,)."""
-    out = np.empty((d.shape[0], 3))
-    for r in range(d.shape[0]):
-        for c in range(3):
-            out[r, c] = d[r, c, 0] * w[0] + d[r, c, 1] * w[1] + d[r, c, 2] * w[2]
-    return out
+def geometry_rate_jacobian(
+    w: np.ndarray, dr: np.ndarray, axes: np.ndarray, solve_t: np.ndarray
+) -> np.ndarray:
+    """``T S`` times the rows ``(w . dr_i) theta_i + (theta_i . w) dr_i - 2 (theta_i . dr_i) w``
+    (k, 3): the rate derivative of what the nominal removes for the sensor positions
+    (``NavFilter.geometry_rate_jacobian``); ``dr`` (3N,), ``axes`` (N, 3)."""
+    n = axes.shape[0]
+    rows = np.empty((n, 3))
+    for i in range(n):
+        dx, dy, dz = dr[3 * i], dr[3 * i + 1], dr[3 * i + 2]
+        tx, ty, tz = axes[i, 0], axes[i, 1], axes[i, 2]
+        wd = dx * w[0] + dy * w[1] + dz * w[2]
+        tw = tx * w[0] + ty * w[1] + tz * w[2]
+        td = tx * dx + ty * dy + tz * dz
+        rows[i, 0] = wd * tx + tw * dx - 2.0 * td * w[0]
+        rows[i, 1] = wd * ty + tw * dy - 2.0 * td * w[1]
+        rows[i, 2] = wd * tz + tw * dz - 2.0 * td * w[2]
+    return np.ascontiguousarray(solve_t) @ rows
+
+
+# -------- the measurement models
 
 
 @njit(cache=True)
@@ -305,6 +572,48 @@ def product_moments(p_rate: np.ndarray, pairs: np.ndarray):
 
 
 @njit(cache=True)
+def rate_model(
+    w_block: np.ndarray,
+    pairs: np.ndarray,
+    rate_var: np.ndarray,
+    h_base: np.ndarray,
+    quad_d: np.ndarray,
+    aided: np.ndarray,
+    quad6_d: np.ndarray,
+    sg: np.ndarray,
+    dr: np.ndarray,
+    axes: np.ndarray,
+    solve_t: np.ndarray,
+    dr0: int,
+):
+    """The block mean (nq,) of the rate products over the rates ``w_block`` (K, 3) and
+    their Jacobian (nq, n) (``NavFilter.rate_model``, which says why).
+
+    ``rate_var`` (3,) shrinks the mean rate the Jacobian is taken at (size 0: not
+    shrunk); ``h_base`` (nq, n) the Jacobian's constant part; ``quad_d`` (nq, 3, 3) the
+    products' derivatives (with the forecast's feedback); ``aided`` (nq, 6) what aided
+    products leave in the solved ones (nq, 0 without) with ``quad6_d`` (6, 3, 3) their
+    derivatives; with sensor-position states (``sg`` (k, 3N), else (0, 0)) their columns
+    from ``dr0`` and the rate derivative of what the nominal removes for them at the
+    positions ``dr`` (3N,), sensing axes ``axes`` (N, 3) and solve ``solve_t`` (k, N).
+    """
+    pred, w_mean = block_products(w_block, pairs)
+    if rate_var.shape[0]:
+        w_mean = shrink(w_mean, rate_var)
+    h = h_base.copy()
+    r = _RATE
+    hr = _dot_last(quad_d, w_mean)
+    if aided.shape[1]:
+        hr += aided @ _dot_last(quad6_d, w_mean)
+    if sg.shape[0]:
+        nd = sg.shape[1]
+        h[:, dr0 : dr0 + nd] = sg[6:]
+        hr += geometry_rate_jacobian(w_mean, dr, axes, solve_t)[6:]
+    h[:, r : r + 3] = hr
+    return pred, h
+
+
+@njit(cache=True)
 def rate_noise_cross(cq: np.ndarray, c: np.ndarray, dt: float, lag: float, n: int) -> np.ndarray:
     """``E[dx v^T]`` (n, nq) of a block's propagation noise with its rate measurement's
     (``NavFilter.rate_noise_cross``): ``cq`` (6, nq) the features' cross-covariance with
@@ -335,33 +644,113 @@ def innovation_cov(h: np.ndarray, p: np.ndarray, r: np.ndarray, cross: np.ndarra
 
 
 @njit(cache=True)
-def reset_rows(
-    p: np.ndarray, ga: np.ndarray, gvv: np.ndarray, gvt: np.ndarray, att0: int, vel0: int
+def augment(x: np.ndarray, p: np.ndarray, z_dim: int, m: np.ndarray, r: np.ndarray, h: np.ndarray):
+    """The state augmented with a measurement's noise ``v`` (``updates.update_correlated``):
+    ``x_a = [x, 0]``, ``P_a = [[P, M], [M^T, R]]``, ``H_a = [H, I]`` and a zero R."""
+    n = x.shape[0]
+    xa = np.zeros(n + z_dim)
+    xa[:n] = x
+    pa = np.empty((n + z_dim, n + z_dim))
+    pa[:n, :n] = p
+    pa[:n, n:] = m
+    pa[n:, :n] = m.T
+    pa[n:, n:] = r
+    ha = np.zeros((z_dim, n + z_dim))
+    ha[:, :n] = h
+    for i in range(z_dim):
+        ha[i, n + i] = 1.0
+    return xa, pa, ha, np.zeros((z_dim, z_dim))
+
+
+@njit(cache=True)
+def aoa_jacobian(
+    n: int,
+    aoa0: int,
+    n_aoa: int,
+    lift_w: float,
+    lift_u_jac: float,
+    vel: np.ndarray,
+    lift_dw: float,
+    lift: float,
+    aoa_k: float,
+    lift_axis: np.ndarray,
+    bias_effect_f: np.ndarray,
+    bias0: int,
+    lift_sg_f: np.ndarray,
+    dr0: int,
 ) -> np.ndarray:
-    """``G P G^T`` (n, n), symmetrised, for ``G`` the identity but its attitude rows ``ga``
-    (3, 3) and, unless ``gvv`` is (0, 0), its velocity rows ``[gvv, gvt]`` on the
-    velocity and attitude columns (``algebra.apply_reset_jacobian``)."""
-    out = p.copy()
+    """``d alpha / d(error state)`` (n,) (``NavFilter.aoa_jacobian``, which says why):
+    the law's states from column ``aoa0``, the velocity through the speed (``vel`` (3,)
+    NED), the force biases from ``bias0`` and, unless ``lift_sg_f`` is (0, 0), the sensor
+    positions from ``dr0`` through the load."""
+    j = np.zeros(n)
+    if n_aoa == 0:
+        return j
+    j[aoa0] = lift_w
+    if n_aoa == 2:
+        j[aoa0 + 1] = lift_w * lift_u_jac
+    speed2 = vel[0] * vel[0] + vel[1] * vel[1] + vel[2] * vel[2]
+    if speed2 <= 1.0:
+        return j
+    v = _VEL
+    if lift_dw != 0.0:
+        speed = math.sqrt(speed2)
+        for a in range(3):
+            j[v + a] += lift_dw * lift * vel[a] / speed
+    if aoa_k > 0.0:
+        wk = lift_w * aoa_k / speed2
+        for a in range(3):
+            j[v + a] += -2.0 * wk * lift_u_jac * vel[a]
+        jb = lift_axis @ np.ascontiguousarray(bias_effect_f)
+        for i in range(jb.shape[0]):
+            j[bias0 + i] += -wk * jb[i]
+        if lift_sg_f.shape[0]:
+            js = lift_axis @ np.ascontiguousarray(lift_sg_f)
+            for i in range(js.shape[0]):
+                j[dr0 + i] += -wk * js[i]
+    return j
+
+
+# -------- the covariance check and the channels' health tests
+
+
+@njit(cache=True)
+def covariance_flaw(p: np.ndarray) -> int:
+    """The per-block check of P: 0 if finite with a positive diagonal, 1 if not finite,
+    2 if a variance is not positive (``NavFilter.check_covariance``)."""
     n = p.shape[0]
-    a = slice(att0, att0 + 3)
-    v = slice(vel0, vel0 + 3)
-    body = gvv.shape[0] > 0
-    rows_t = np.ascontiguousarray(p[a, :])
-    if body:
-        rows_v = np.ascontiguousarray(p[v, :])
-        out[v, :] = gvv @ rows_v + gvt @ rows_t
-    out[a, :] = ga @ rows_t
-    cols_t = np.ascontiguousarray(out[:, a])
-    if body:
-        cols_v = np.ascontiguousarray(out[:, v])
-        out[:, v] = cols_v @ gvv.T + cols_t @ gvt.T
-    out[:, a] = cols_t @ ga.T
     for i in range(n):
-        for j in range(i + 1, n):
-            s = 0.5 * (out[i, j] + out[j, i])
-            out[i, j] = s
-            out[j, i] = s
-    return out
+        for j in range(n):
+            if not np.isfinite(p[i, j]):
+                return 1
+    for i in range(n):
+        if p[i, i] <= 0.0:
+            return 2
+    return 0
+
+
+@njit(cache=True)
+def held_rows(chmask: np.ndarray, nfmask: np.ndarray, excluded: int):
+    """Rows (K,) held for a bad channel not in ``excluded`` (bit masks per row), their
+    number, and how many rows have such a channel non-finite or else saturated
+    (``Pipeline._count_held``)."""
+    k = chmask.shape[0]
+    bad = np.zeros(k, np.bool_)
+    n_bad = 0
+    n_nonfinite = 0
+    n_saturated = 0
+    keep = ~excluded
+    for i in range(k):
+        if chmask[i] & keep:
+            bad[i] = True
+            n_bad += 1
+            if nfmask[i] & keep:
+                n_nonfinite += 1
+            else:
+                n_saturated += 1
+        elif nfmask[i] & keep:
+            n_nonfinite += 1
+    return bad, n_bad, n_nonfinite, n_saturated
 
 
 @njit(cache=True)
@@ -426,371 +815,3 @@ def parity_cusum(
         cusum[g, 1] = max(0.0, cusum[g, 1] - z - allowance)
         top[g] = max(cusum[g, 0], cusum[g, 1])
     return top
-
-
-@njit(cache=True)
-def error_dynamics(
-    fc_base: np.ndarray,
-    f_n: np.ndarray,
-    c: np.ndarray,
-    bias_effect_f: np.ndarray,
-    bias0: int,
-    quad_into: np.ndarray,
-    quad6_d: np.ndarray,
-    w: np.ndarray,
-    sg: np.ndarray,
-    dr0: int,
-    dr: np.ndarray,
-    axes: np.ndarray,
-    solve_t: np.ndarray,
-) -> np.ndarray:
-    """The error dynamics' navigation rows ``F`` (12, n) over a block
-    (``NavFilter.propagation_matrices``).
-
-    ``fc_base`` (12, n) its constant part; ``f_n`` (3,) the force the transition reads;
-    ``c`` (3, 3) ``C_nb``; ``bias_effect_f`` (3, nb) what the biases (from column
-    ``bias0``) leave in the force; ``quad_into`` (6, 6) what the rate products' error
-    reaches ``[wdot, f]`` through (``quad6_d`` (6, 3, 3) their derivative, ``w`` (3,) the
-    rate), or (0, 0); ``sg`` (k, 3N) the features' sensitivity to the sensor positions
-    (from column ``dr0``), or (0, 0) without, and the rate derivative of what the
-    nominal removes for the positions (``dr`` (3N,), ``axes`` (N, 3), ``solve_t`` (k, N):
-    :func:`geometry_rate_jacobian`).
-    """
-    fc = fc_base.copy()
-    v, a, r = _VEL, _ATT, _RATE
-    fc[v, a + 1] = f_n[2]
-    fc[v, a + 2] = -f_n[1]
-    fc[v + 1, a] = -f_n[2]
-    fc[v + 1, a + 2] = f_n[0]
-    fc[v + 2, a] = f_n[1]
-    fc[v + 2, a + 1] = -f_n[0]
-    nb = bias_effect_f.shape[1]
-    fc[v : v + 3, bias0 : bias0 + nb] = -(c @ np.ascontiguousarray(bias_effect_f))
-    fc[a : a + 3, r : r + 3] = c
-    if quad_into.shape[0]:
-        aj = quad_into @ _dot_last(quad6_d, w)
-        fc[r : r + 3, r : r + 3] = -aj[0:3]
-        fc[v : v + 3, r : r + 3] = -(c @ np.ascontiguousarray(aj[3:6]))
-    if sg.shape[0]:
-        nd = sg.shape[1]
-        fc[r : r + 3, dr0 : dr0 + nd] = -sg[0:3]
-        fc[v : v + 3, dr0 : dr0 + nd] = -(c @ np.ascontiguousarray(sg[3:6]))
-        gw = geometry_rate_jacobian(w, dr, axes, solve_t)
-        fc[r : r + 3, r : r + 3] -= gw[0:3]
-        fc[v : v + 3, r : r + 3] -= c @ np.ascontiguousarray(gw[3:6])
-    return fc
-
-
-@njit(cache=True)
-def _exp(rx: float, ry: float, rz: float) -> np.ndarray:
-    """The quaternion (4,) of a rotation vector (rad), the series of sin(x)/x below 1e-4."""
-    a = math.sqrt(rx * rx + ry * ry + rz * rz)
-    k1 = 0.5 - a * a / 48.0 if a < 1e-4 else math.sin(0.5 * a) / a
-    e = np.empty(4)
-    e[0], e[1], e[2], e[3] = math.cos(0.5 * a), k1 * rx, k1 * ry, k1 * rz
-    return e
-
-
-@njit(cache=True)
-def _skew(v: np.ndarray) -> np.ndarray:
-    s = np.zeros((3, 3))
-    s[0, 1], s[0, 2] = -v[2], v[1]
-    s[1, 0], s[1, 2] = v[2], -v[0]
-    s[2, 0], s[2, 1] = -v[1], v[0]
-    return s
-
-
-@njit(cache=True)
-def inject(q: np.ndarray, v_old: np.ndarray, dth: np.ndarray, dv: np.ndarray, body: bool):
-    """A correction's attitude and velocity and its reset Jacobian's rows
-    (``NavFilter._inject``).
-
-    ``q`` (4,) ``q_nb``; ``v_old`` (3,) the NED velocity; ``dth`` (3,) the NED attitude
-    correction; ``dv`` (3,) the velocity correction, body-style when ``body`` (the body
-    velocity takes it and the corrected attitude carries it), else NED. Returns the new
-    ``q`` (4,) and velocity (3,), the attitude rows ``ga`` (3, 3)
-    (``algebra.attitude_reset_jacobian``) and, body-style, the velocity rows ``gvv``,
-    ``gvt`` (3, 3) (``algebra.body_velocity_reset_jacobian``; (0, 0) otherwise).
-    """
-    e = _exp(dth[0], dth[1], dth[2])
-    if body:
-        u = v_old + dv
-        u[0] += v_old[1] * dth[2] - v_old[2] * dth[1]
-        u[1] += v_old[2] * dth[0] - v_old[0] * dth[2]
-        u[2] += v_old[0] * dth[1] - v_old[1] * dth[0]
-        v_new = dcm(e) @ u
-    else:
-        v_new = v_old + dv
-    q_new = _unit_product(e, q)  # exp(dth) * q
-    ga = attitude_reset_rows(dth)
-    if not body:
-        return q_new, v_new, ga, np.zeros((0, 0)), np.zeros((0, 0))
-    gvv, gvt = body_velocity_reset_rows(dth, dv, v_old)
-    return q_new, v_new, ga, gvv, gvt
-
-
-@njit(cache=True)
-def attitude_reset_rows(dth: np.ndarray) -> np.ndarray:
-    """``I + [dth]x / 2`` with its heading column held at ``e_z`` (3, 3)
-    (``algebra.attitude_reset_jacobian``, which says why)."""
-    hx, hy, hz = 0.5 * dth[0], 0.5 * dth[1], 0.5 * dth[2]
-    ga = np.eye(3)
-    ga[0, 1], ga[1, 0], ga[2, 0], ga[2, 1] = -hz, hz, -hy, hx
-    return ga
-
-
-@njit(cache=True)
-def body_velocity_reset_rows(dth: np.ndarray, dv: np.ndarray, v: np.ndarray):
-    """``(G_vv, G_vtheta)`` (3, 3) each (``algebra.body_velocity_reset_jacobian``)."""
-    st = _skew(dth)
-    sv = _skew(v)
-    gvv = np.eye(3) + st
-    gvt = st @ sv - _skew(dv) - 0.5 * sv @ st
-    return gvv, gvt
-
-
-@njit(cache=True)
-def ned_velocity_curvature(v: np.ndarray, p6: np.ndarray):
-    """Mean (3,) and covariance (3, 3) of the NED velocity's second-order part under the
-    body-frame velocity error (``algebra.ned_velocity_curvature``): ``v`` (3,) the NED
-    velocity, ``p6`` (6, 6) the covariance of ``(dtheta, xi_v)``."""
-    m = np.zeros((3, 6, 6))
-    for i in range(3):
-        j, k = (i + 1) % 3, (i + 2) % 3  # eps_ijk = 1, eps_ikj = -1
-        m[i, j, 3 + k] = 1.0
-        m[i, k, 3 + j] = -1.0
-        m[i, 3 + k, j] = 1.0
-        m[i, 3 + j, k] = -1.0
-        for a in range(3):
-            m[i, i, a] -= 0.5 * v[a]
-            m[i, a, i] -= 0.5 * v[a]
-            m[i, a, a] += v[i]
-    p = np.ascontiguousarray(p6)
-    mp = np.empty((3, 6, 6))
-    for i in range(3):
-        mp[i] = m[i] @ p
-    mean = np.empty(3)
-    for i in range(3):
-        mean[i] = 0.5 * np.trace(mp[i])
-    cov = np.empty((3, 3))
-    for i in range(3):
-        for j in range(3):
-            s = 0.0
-            for a in range(6):
-                for b in range(6):
-                    s += mp[i, a, b] * mp[j, b, a]
-            cov[i, j] = 0.5 * s
-    return mean, cov
-
-
-@njit(cache=True)
-def covariance_flaw(p: np.ndarray) -> int:
-    """The per-block check of P: 0 if finite with a positive diagonal, 1 if not finite,
-    2 if a variance is not positive (``NavFilter.check_covariance``)."""
-    n = p.shape[0]
-    for i in range(n):
-        for j in range(n):
-            if not np.isfinite(p[i, j]):
-                return 1
-    for i in range(n):
-        if p[i, i] <= 0.0:
-            return 2
-    return 0
-
-
-@njit(cache=True)
-def remove_feature_residual(
-    q: np.ndarray,
-    w: np.ndarray,
-    vel: np.ndarray,
-    pos: np.ndarray,
-    r: np.ndarray,
-    t_s: float,
-    w_blk: np.ndarray,
-    dt: float,
-):
-    """A constant error ``r`` (6,) in a block's solved ``[wdot, f]`` out of the nominal
-    state propagated with it for ``t_s`` s (``NavFilter.remove_feature_residual``) and out
-    of the block's rates ``w_blk`` (K, 3) at its samples (interval ``dt``). Returns the
-    new rate, attitude, velocity, position and block rates."""
-    t2 = 0.5 * t_s * t_s
-    c = dcm(q)
-    w_new = w - t_s * r[0:3]
-    q_new = rotate_right(q, -t2 * r[0], -t2 * r[1], -t2 * r[2])
-    dv = c @ np.ascontiguousarray(r[3:6])
-    vel_new = vel - t_s * dv
-    pos_new = pos - t2 * dv
-    w_out = w_blk.copy()
-    for s in range(w_blk.shape[0]):
-        for a in range(3):
-            w_out[s, a] = w_blk[s, a] - ((s + 1) * dt) * r[a]
-    return w_new, q_new, vel_new, pos_new, w_out
-
-
-@njit(cache=True)
-def augment(x: np.ndarray, p: np.ndarray, z_dim: int, m: np.ndarray, r: np.ndarray, h: np.ndarray):
-    """The state augmented with a measurement's noise ``v`` (``updates.update_correlated``):
-    ``x_a = [x, 0]``, ``P_a = [[P, M], [M^T, R]]``, ``H_a = [H, I]`` and a zero R."""
-    n = x.shape[0]
-    xa = np.zeros(n + z_dim)
-    xa[:n] = x
-    pa = np.empty((n + z_dim, n + z_dim))
-    pa[:n, :n] = p
-    pa[:n, n:] = m
-    pa[n:, :n] = m.T
-    pa[n:, n:] = r
-    ha = np.zeros((z_dim, n + z_dim))
-    ha[:, :n] = h
-    for i in range(z_dim):
-        ha[i, n + i] = 1.0
-    return xa, pa, ha, np.zeros((z_dim, z_dim))
-
-
-@njit(cache=True)
-def body_frame_gravity(
-    g: np.ndarray, p: np.ndarray, c: np.ndarray, vel: np.ndarray, att0: int, vel0: int, rate0: int
-) -> np.ndarray:
-    """Gravity (3,) as the body-frame velocity error's mean propagation reads it
-    (``NavFilter.propagate``): ``g + (P_att - tr(P_att) I) g / 2`` less
-    ``C axial(E[dw dv_b^T])``, ``E[dw dv_b^T] = P_wv C - P_wtheta [v]x C``."""
-    pa = np.ascontiguousarray(p[att0 : att0 + 3, att0 : att0 + 3])
-    tr = pa[0, 0] + pa[1, 1] + pa[2, 2]
-    g_n = g + 0.5 * (pa @ g - tr * g)
-    pwv = np.ascontiguousarray(p[rate0 : rate0 + 3, vel0 : vel0 + 3])
-    pwt = np.ascontiguousarray(p[rate0 : rate0 + 3, att0 : att0 + 3])
-    x = pwv @ c - pwt @ _skew(vel) @ c
-    ax = np.empty(3)
-    ax[0] = x[1, 2] - x[2, 1]
-    ax[1] = x[2, 0] - x[0, 2]
-    ax[2] = x[0, 1] - x[1, 0]
-    return g_n - c @ ax
-
-
-@njit(cache=True)
-def held_rows(chmask: np.ndarray, nfmask: np.ndarray, excluded: int):
-    """Rows (K,) held for a bad channel not in ``excluded`` (bit masks per row), their
-    number, and how many rows have such a channel non-finite or else saturated
-    (``Pipeline._count_held``)."""
-    k = chmask.shape[0]
-    bad = np.zeros(k, np.bool_)
-    n_bad = 0
-    n_nonfinite = 0
-    n_saturated = 0
-    keep = ~excluded
-    for i in range(k):
-        if chmask[i] & keep:
-            bad[i] = True
-            n_bad += 1
-            if nfmask[i] & keep:
-                n_nonfinite += 1
-            else:
-                n_saturated += 1
-        elif nfmask[i] & keep:
-            n_nonfinite += 1
-    return bad, n_bad, n_nonfinite, n_saturated
-
-
-@njit(cache=True)
-def aoa_jacobian(
-    n: int,
-    aoa0: int,
-    n_aoa: int,
-    lift_w: float,
-    lift_u_jac: float,
-    vel: np.ndarray,
-    lift_dw: float,
-    lift: float,
-    aoa_k: float,
-    lift_axis: np.ndarray,
-    bias_effect_f: np.ndarray,
-    bias0: int,
-    lift_sg_f: np.ndarray,
-    dr0: int,
-) -> np.ndarray:
-    """``d alpha / d(error state)`` (n,) (``NavFilter.aoa_jacobian``, which says why):
-    the law's states from column ``aoa0``, the velocity through the speed (``vel`` (3,)
-    NED), the force biases from ``bias0`` and, unless ``lift_sg_f`` is (0, 0), the sensor
-    positions from ``dr0`` through the load."""
-    j = np.zeros(n)
-    if n_aoa == 0:
-        return j
-    j[aoa0] = lift_w
-    if n_aoa == 2:
-        j[aoa0 + 1] = lift_w * lift_u_jac
-    speed2 = vel[0] * vel[0] + vel[1] * vel[1] + vel[2] * vel[2]
-    if speed2 <= 1.0:
-        return j
-    v = _VEL
-    if lift_dw != 0.0:
-        speed = math.sqrt(speed2)
-        for a in range(3):
-            j[v + a] += lift_dw * lift * vel[a] / speed
-    if aoa_k > 0.0:
-        wk = lift_w * aoa_k / speed2
-        for a in range(3):
-            j[v + a] += -2.0 * wk * lift_u_jac * vel[a]
-        jb = lift_axis @ np.ascontiguousarray(bias_effect_f)
-        for i in range(jb.shape[0]):
-            j[bias0 + i] += -wk * jb[i]
-        if lift_sg_f.shape[0]:
-            js = lift_axis @ np.ascontiguousarray(lift_sg_f)
-            for i in range(js.shape[0]):
-                j[dr0 + i] += -wk * js[i]
-    return j
-
-
-@njit(cache=True)
-def rate_model(
-    w_block: np.ndarray,
-    pairs: np.ndarray,
-    rate_var: np.ndarray,
-    h_base: np.ndarray,
-    quad_d: np.ndarray,
-    aided: np.ndarray,
-    quad6_d: np.ndarray,
-    sg: np.ndarray,
-    dr: np.ndarray,
-    axes: np.ndarray,
-    solve_t: np.ndarray,
-    dr0: int,
-):
-    """The block mean (nq,) of the rate products over the rates ``w_block`` (K, 3) and
-    their Jacobian (nq, n) (``NavFilter.rate_model``, which says why).
-
-    ``rate_var`` (3,) shrinks the mean rate the Jacobian is taken at (size 0: not
-    shrunk); ``h_base`` (nq, n) the Jacobian's constant part; ``quad_d`` (nq, 3, 3) the
-    products' derivatives (with the forecast's feedback); ``aided`` (nq, 6) what aided
-    products leave in the solved ones (nq, 0 without) with ``quad6_d`` (6, 3, 3) their
-    derivatives; with sensor-position states (``sg`` (k, 3N), else (0, 0)) their columns
-    from ``dr0`` and the rate derivative of what the nominal removes for them at the
-    positions ``dr`` (3N,), sensing axes ``axes`` (N, 3) and solve ``solve_t`` (k, N).
-    """
-    pred, w_mean = block_products(w_block, pairs)
-    if rate_var.shape[0]:
-        w_mean = shrink(w_mean, rate_var)
-    h = h_base.copy()
-    r = _RATE
-    hr = _dot_last(quad_d, w_mean)
-    if aided.shape[1]:
-        hr += aided @ _dot_last(quad6_d, w_mean)
-    if sg.shape[0]:
-        nd = sg.shape[1]
-        h[:, dr0 : dr0 + nd] = sg[6:]
-        hr += geometry_rate_jacobian(w_mean, dr, axes, solve_t)[6:]
-    h[:, r : r + 3] = hr
-    return pred, h
-
-
-@njit(cache=True)
-def add_curvature_noise(
-    p: np.ndarray, acc: np.ndarray, f_n: np.ndarray, t_s: float, att0: int, vel0: int
-) -> None:
-    """Grow the force curvature's random constant over ``t_s`` s, in place
-    (``NavFilter._add_curvature_noise``): ``acc`` (3,) each NED axis's 1-sigma velocity
-    error from it, m/s, grows by ``sd(b) t_s`` and P's velocity variances by the
-    difference of the squares."""
-    var_b = force_curvature_variance(f_n, np.ascontiguousarray(p[att0 : att0 + 3, att0 : att0 + 3]))
-    for i in range(3):
-        new = acc[i] + math.sqrt(max(var_b[i], 0.0)) * t_s
-        p[vel0 + i, vel0 + i] += new * new - acc[i] * acc[i]
-        acc[i] = new

@@ -204,6 +204,21 @@ def summary(err: RunErrors) -> ErrorSummary:
     return summarise(err)
 
 
+def warm_up() -> None:
+    """Run the filter over the first 3 s of the shipped ``tactical`` flight (about 0.3 s).
+
+    The filter's inner loops are compiled on their first use on a machine (about 20 s)
+    and loaded from a disk cache after (:mod:`filters.kernels`). A live link calls this
+    before it listens: a first step that compiled would stall it while its input queued
+    and overflowed.
+    """
+    from filters.bench import _first_seconds
+
+    sim = simulate_flight(load_flight("tactical"), 0)
+    samples, fixes = _first_seconds(sim.samples, sim.fixes, 3.0)
+    run_filter(samples, fixes, sim.config)
+
+
 def pipeline_factory(
     compensation: str | None = None, keep_estimates: bool = True, smooth: bool = False
 ) -> Callable[[RunConfig, Callable[[NavEstimate], None]], Pipeline]:

@@ -312,6 +312,9 @@ def serve(
             if frames:
                 send(frames)
                 latencies.add(time.perf_counter() - t_rx)
+            # silence is counted while waiting, not while the filter works (a long step
+            # would otherwise read as the link gone and drop what queued meanwhile)
+            t_last_rx = time.monotonic()
         result = session.finish()
         send(session.take())
     finally:

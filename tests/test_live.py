@@ -15,6 +15,7 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -270,3 +271,53 @@ def test_mavlogdump_reads_the_estimate_tlog(live_run):
     assert any("HEARTBEAT {type : 1, autopilot : 0" in x for x in lines)
     assert sum("ATTITUDE {" in x for x in lines) > 1000
     assert sum("GLOBAL_POSITION_INT {" in x for x in lines) > 1000
+
+
+def test_a_slow_step_does_not_read_as_the_link_gone():
+    """``idle_exit_s`` counts silence while waiting for input, not while the filter works:
+    a step that takes longer than it (one epoch's reader stalls 1.5 s, as a first step
+    that compiles the filter would) leaves the link open, and what queued meanwhile is
+    processed (tactical's first 12 s at 2x real time over loopback UDP, idle exit 1 s)."""
+    import time
+
+    from filters.bench import _first_seconds
+    from filters.pipeline import Pipeline
+    from ngnav.sim.flight_scenario import load_flight
+    from ngnav.sim.simulate import simulate_flight
+    from telemetry.inputs import input_frames
+    from telemetry.live import Endpoint, free_udp_port, play_frames, serve
+    from telemetry.outputs import OutputSettings
+    from telemetry.tlog import FrameWriter, frames_of
+
+    sim = simulate_flight(load_flight("tactical", ["run.rate_hz=200"]), 0)
+    samples, fixes = _first_seconds(sim.samples, sim.fixes, 12.0)
+    frames = list(frames_of(input_frames(samples, fixes, sim.config), FrameWriter()))
+    p_in = free_udp_port()
+
+    def ready() -> None:
+        dest = Endpoint("udpout", "127.0.0.1", p_in)
+        threading.Thread(target=play_frames, args=(frames, dest, 2.0), daemon=True).start()
+
+    stalled = []
+
+    def factory(cfg, on_epoch):
+        def slow_once(est):
+            if not stalled:
+                stalled.append(est.t_s)
+                time.sleep(1.5)
+            on_epoch(est)
+
+        return Pipeline(cfg, on_epoch=slow_once)
+
+    stats = serve(
+        Endpoint("udpin", "127.0.0.1", p_in),
+        Endpoint("udpout", "127.0.0.1", free_udp_port()),
+        factory,
+        OutputSettings(),
+        idle_exit_s=1.0,
+        duration_s=60.0,
+        ready=ready,
+    )
+    assert stalled, "the filter never started"
+    t_end = stats.result.estimates.t_s[-1] - samples.t_s[0]
+    assert t_end > 11.5, f"the link closed at {t_end:.1f} s of 12 s of flight"

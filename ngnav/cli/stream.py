@@ -86,12 +86,13 @@ def print_counts(title: str, counts: dict[str, int], indent: str = "  ") -> None
 def cmd_stream(args: argparse.Namespace) -> int:
     """``ngnav stream``: estimate from a live UDP link, send MAVLink estimates."""
     from filters.output import write_estimates_csv
-    from ngnav.api import pipeline_factory
+    from ngnav.api import pipeline_factory, warm_up
     from telemetry.live import parse_endpoint, serve
 
     src = parse_endpoint(args.inp, "udpin")
     dst = parse_endpoint(args.out, "udpout")
     settings = output_settings(args)
+    warm_up()  # the filter compiled or loaded before the link is read
 
     def ready() -> None:
         print(f"ngnav stream: {src} -> {dst} (system {settings.system_id})", flush=True)
