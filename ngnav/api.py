@@ -205,7 +205,7 @@ def summary(err: RunErrors) -> ErrorSummary:
 
 
 def warm_up() -> None:
-    """Run the filter over the first 3 s of the shipped ``tactical`` flight (about 0.3 s).
+    """Run the filter over the first 3 s of the shipped ``tactical`` flight (0.7 s cached).
 
     The filter's inner loops are compiled on their first use on a machine (about 20 s)
     and loaded from a disk cache after (:mod:`filters.kernels`). A live link calls this
