@@ -42,7 +42,7 @@ def _static_tilt(f_b: np.ndarray) -> tuple[float, float]:
 def _gps_course(vel_ned_mps: np.ndarray, vel_sigma_mps: float) -> tuple[float, float] | None:
     """GPS course (rad) and its 1-sigma ``atan(3 sigma_v / speed)``; None below the min speed."""
     speed = float(np.hypot(vel_ned_mps[0], vel_ned_mps[1]))
-    if speed <= COURSE_MIN_SPEED_MPS:
+    if not speed > COURSE_MIN_SPEED_MPS:  # slow, or no horizontal velocity (NaN)
         return None
     return float(np.arctan2(vel_ned_mps[1], vel_ned_mps[0])), float(
         np.arctan2(3 * vel_sigma_mps, speed)

@@ -269,6 +269,7 @@ class NavFilter(
             raise ValueError(f"gate_probability must be in (0.5, 1), got {self.gate_probability}")
         self.gate3 = float(chi2.ppf(self.gate_probability, 3))
         self.gate1 = float(chi2.ppf(self.gate_probability, 1))
+        self.gate2 = float(chi2.ppf(self.gate_probability, 2))
         self.gate_q = float(chi2.ppf(self.gate_probability, max(self.layout.nq, 1)))
         self.x = np.zeros(n)
         self.P = np.eye(n)

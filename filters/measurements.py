@@ -284,41 +284,82 @@ class MeasurementsMixin:
         (the first fix after an outage) a fix that passes the position gate
         is not fused: :meth:`reset_to_fix` puts position and velocity on it; so
         does the :data:`GAP_RESET_AFTER_REJECTS`-th fix in a row that fails it.
+
+        A component the receiver did not give (NaN: the altitude of a fix whose
+        altitude is flagged ignored, the vertical velocity GPS_RAW_INT lacks) is left
+        out: the rest is gated on its own dimension and fused. A fix with no velocity
+        leaves the velocity untouched and is not counted as rejected; the 3-dof
+        ``nis_pos`` and ``nis_vel`` of a partial fix are NaN (the statistics a 3-dof
+        chi-square judges), ``nis_pos_h`` is there whenever the horizontal is.
         """
         t_fix = self.t_s + dt_fix_s
         if np.isfinite(self._t_prev_fix) and t_fix > self._t_prev_fix:
             self.fix_interval_s = t_fix - self._t_prev_fix
         self._t_prev_fix = t_fix
-        mp = self.measure_gps_position(pos_ned_m, pos_sigma_m, dt_fix_s)
+        pos_rows = np.isfinite(pos_ned_m)
+        vel_rows = np.isfinite(vel_ned_mps)
+        mp = self.measure_gps_position(np.nan_to_num(pos_ned_m), pos_sigma_m, dt_fix_s)
         yp, sp = mp.z, mp.innovation_cov(self.P)
-        nis_h = quadratic_form(yp[0:2], sp[0:2, 0:2])
-        nis_vt = float(yp[2] ** 2 / sp[2, 2]) if sp[2, 2] > 0 else float("inf")
+        nis_h = quadratic_form(yp[0:2], sp[0:2, 0:2]) if pos_rows[0:2].all() else np.nan
+        nis_vt = np.nan
+        if pos_rows[2]:
+            nis_vt = float(yp[2] ** 2 / sp[2, 2]) if sp[2, 2] > 0 else np.inf
+        mp = mp.take(pos_rows)
         if reset:
-            nis_p = quadratic_form(yp, sp)
-            passed = np.isfinite(nis_p) and nis_p <= self.gate3
+            nis_p = quadratic_form(mp.z, mp.innovation_cov(self.P))
+            passed = np.isfinite(nis_p) and nis_p <= self._gate(mp)
             if passed or self._consec_rejects + 1 >= GAP_RESET_AFTER_REJECTS:
-                mv = self.measure_gps_velocity(vel_ned_mps, vel_sigma_mps)
-                nis_v = quadratic_form(mv.z, mv.innovation_cov(self.P))
+                mv = self._gps_velocity(vel_ned_mps, vel_sigma_mps, vel_rows)
+                nis_v = np.nan if mv is None else quadratic_form(mv.z, mv.innovation_cov(self.P))
                 self.reset_to_fix(
                     pos_ned_m - self.vel * dt_fix_s, vel_ned_mps, pos_sigma_m, vel_sigma_mps
                 )
                 self.counters.gps_gap_resets += 1
                 self.counters.gps_used += 1
-                return GpsUpdateResult(nis_p, nis_v, True, True, nis_h, nis_vt)
+                return GpsUpdateResult(
+                    _full(nis_p, pos_rows),
+                    _full(nis_v, vel_rows),
+                    True,
+                    mv is not None,
+                    nis_h,
+                    nis_vt,
+                )
             self.counters.gps_rejected_pos += 1
-            self.counters.gps_rejected_vel += 1
+            self.counters.gps_rejected_vel += int(vel_rows.any())
             self._consec_rejects += 1
-            return GpsUpdateResult(nis_p, float("nan"), False, False, nis_h, nis_vt)
-        nis_p, ok_p = self._gated_update(mp)
+            return GpsUpdateResult(_full(nis_p, pos_rows), np.nan, False, False, nis_h, nis_vt)
+        nis_p, ok_p = self._gated_update(mp, self._gate(mp))
         # the velocity at the state the position update left
-        nis_v, ok_v = self._gated_update(self.measure_gps_velocity(vel_ned_mps, vel_sigma_mps))
+        mv = self._gps_velocity(vel_ned_mps, vel_sigma_mps, vel_rows)
+        nis_v, ok_v = (np.nan, False) if mv is None else self._gated_update(mv, self._gate(mv))
         self.counters.gps_used += int(ok_p or ok_v)
         self.counters.gps_rejected_pos += int(not ok_p)
-        self.counters.gps_rejected_vel += int(not ok_v)
+        self.counters.gps_rejected_vel += int(mv is not None and not ok_v)
         self._consec_rejects = 0 if ok_p else self._consec_rejects + 1
-        self._consec_vel_rejects = 0 if ok_v else self._consec_vel_rejects + 1
+        if mv is not None:
+            self._consec_vel_rejects = 0 if ok_v else self._consec_vel_rejects + 1
         if ok_p:
             self.t_last_position_fix = self.t_s
         if ok_v:
             self._curvature_sd_mps[:] = 0.0
-        return GpsUpdateResult(nis_p, nis_v, ok_p, ok_v, nis_h, nis_vt)
+        return GpsUpdateResult(
+            _full(nis_p, pos_rows), _full(nis_v, vel_rows), ok_p, ok_v, nis_h, nis_vt
+        )
+
+    def _gps_velocity(
+        self, vel_ned_mps: np.ndarray, vel_sigma_mps: float, rows: np.ndarray
+    ) -> Measurement | None:
+        """The fix's velocity measurement on the components it has, or None (none)."""
+        if not rows.any():
+            return None
+        mv = self.measure_gps_velocity(np.nan_to_num(vel_ned_mps), vel_sigma_mps)
+        return mv if rows.all() else mv.take(rows)
+
+    def _gate(self, meas: Measurement) -> float:
+        """The chi-square gate of a 1-, 2- or 3-row measurement."""
+        return (self.gate1, self.gate2, self.gate3)[meas.z.shape[0] - 1]
+
+
+def _full(nis: float, rows: np.ndarray) -> float:
+    """A NIS as the 3-dof statistic: NaN unless all three components were measured."""
+    return float(nis) if rows.all() else float("nan")

@@ -202,22 +202,32 @@ class NominalMixin:
         Used after a run of rejected fixes and for the first fix after an outage (the
         caller counts which). The antenna lever arm is removed with the current attitude
         and rate; position and velocity get the fix's variances and lose their
-        correlations with the other states, which keep theirs.
+        correlations with the other states, which keep theirs. A component the fix
+        lacks (NaN) keeps its estimate and covariance (the whole velocity, while its
+        error is taken in the body frame).
         """
         c = dcm_from_quat(self.q)
-        self.pos = np.asarray(pos_ned_m, dtype=float) - c @ self.antenna_b_m
-        self.vel = np.asarray(vel_ned_mps, dtype=float) - c @ np.cross(self.w, self.antenna_b_m)
-        n = self.layout.n
-        keep = np.ones(n, dtype=bool)
-        keep[0:6] = False
+        pos = np.asarray(pos_ned_m, dtype=float) - c @ self.antenna_b_m
+        vel = np.asarray(vel_ned_mps, dtype=float) - c @ np.cross(self.w, self.antenna_b_m)
+        put = np.concatenate([np.isfinite(pos), np.isfinite(vel)])
+        if not put[3:6].all() and self.in_body_frame():
+            put[3:6] = False  # a body-frame velocity error has no NED component to put alone
+        self.pos = np.where(put[0:3], pos, self.pos)
+        self.vel = np.where(put[3:6], vel, self.vel)
+        var = np.concatenate(
+            [
+                np.broadcast_to(np.asarray(pos_sigma_m, dtype=float), 3) ** 2,
+                np.full(3, float(vel_sigma_mps) ** 2),
+            ]
+        )
+        idx = np.flatnonzero(put)
         p = self.P.copy()
-        p[~keep, :] = 0.0
-        p[:, ~keep] = 0.0
-        p[POS, POS] = np.diag(np.broadcast_to(np.asarray(pos_sigma_m, dtype=float), 3) ** 2)
-        p[VEL, VEL] = np.eye(3) * float(vel_sigma_mps) ** 2
+        p[idx, :] = 0.0
+        p[:, idx] = 0.0
+        p[idx, idx] = var[idx]
         self.P = p
         if self.lag is not None:
-            self.lag.forget(slice(0, 6))
+            self.lag.forget(idx.tolist())
         self._consec_rejects = 0
         self._consec_vel_rejects = 0
         self.t_last_position_fix = self.t_s

@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from filters.alignment import _gps_course
+from filters.stream import whole_fix
 from filters.vehicle_model import ZERO_LIFT_AOA_DEG
 from ngnav.conventions import gravity_n_mps2
 from ngnav.errors import CovarianceError
@@ -127,6 +128,8 @@ class RecoveryMixin:
             self.counts["gps fixes while the track was lost"] += 1
             if self.keep_estimates:  # no innovation: the series keep one entry per fix
                 self._inn.append((fix[0], np.nan, np.nan, False, False))
+            if not whole_fix(fix):
+                continue  # a start needs the whole position and velocity
             prev = self._prev_fix
             self._prev_fix = fix
             if (

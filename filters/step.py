@@ -324,14 +324,15 @@ class StepMixin:
         self.last_gps_t = t_fix
         if p_bound is not None:
             _, _, hp, hv = nf.gps_model(truth.q_nb[i1], truth.omega_b_rps[i1])
-            if res.pos_accepted:
-                _, p_bound = kf_update(
-                    np.zeros(nf.layout.n), p_bound, np.zeros(3), np.diag(sig**2), hp
-                )
-            if res.vel_accepted:
-                _, p_bound = kf_update(
-                    np.zeros(nf.layout.n), p_bound, np.zeros(3), np.eye(3) * vacc**2, hv
-                )
+            for ok, h, var, given in (
+                (res.pos_accepted, hp, sig**2, np.isfinite(ned)),
+                (res.vel_accepted, hv, np.full(3, vacc**2), np.isfinite(vel)),
+            ):
+                if ok:
+                    m = int(given.sum())
+                    _, p_bound = kf_update(
+                        np.zeros(nf.layout.n), p_bound, np.zeros(m), np.diag(var[given]), h[given]
+                    )
             self._p_bound = p_bound
         if nf.consecutive_position_rejects >= RESET_AFTER_REJECTS:
             nf.reset_to_fix(ned, vel, sig, vacc)

@@ -60,14 +60,25 @@ class StreamMixin:
         v_acc_m: float,
         vel_acc_mps: float,
     ) -> int:
-        """Take one GPS fix (time of validity, WGS-84, NED velocity, 1-sigma); returns epochs."""
+        """Take one GPS fix (time of validity, WGS-84, NED velocity, 1-sigma); returns epochs.
+
+        An altitude or velocity component the receiver did not give is NaN: the filter
+        fuses the rest (:meth:`NavFilter.update_gps`), but starts only on a whole fix.
+        Without an altitude the horizontal position is placed at the filter's altitude
+        (the reference point's before the start).
+        """
         if self.finished:
             raise ValueError("the pipeline has finished; it takes no more fixes")
+        no_alt = not np.isfinite(alt_m)
+        if no_alt:
+            alt_m = self._ltp.to_geodetic(self.nf.pos)[2] if self.started else self._ltp.alt0_m
         ned = self._ltp.to_ned(
             np.array([lat_deg], dtype=float),
             np.array([lon_deg], dtype=float),
             np.array([alt_m], dtype=float),
         )[0]
+        if no_alt:
+            ned[2] = np.nan
         fix = (
             float(t_s),
             ned,
@@ -95,7 +106,8 @@ class StreamMixin:
                 raise ValueError(f"the run holds {self._n} array samples; at least 2 are needed")
             if not self._try_start(final=True):
                 raise ValueError(
-                    "no GPS fix after the alignment period: cannot set position and velocity"
+                    "no whole GPS fix (latitude, longitude, altitude and 3-D velocity) after "
+                    "the alignment period: cannot set position and velocity"
                 )
         self.finished = True
         n_before = self.n_epochs
@@ -168,7 +180,7 @@ class StreamMixin:
         for fix in self._fixes:
             inside = fix[0] >= t0 - dt / 2 and fix[0] <= t[-1] + dt / 2
             idx = min(int(np.rint((fix[0] - t0) / dt)), self._n - 1)
-            if not inside or idx < i_align:
+            if not inside or idx < i_align or not whole_fix(fix):
                 continue
             if best is None or (fix[0], fix[5]) < (best[1][0], best[1][5]):
                 best = (idx, fix)
@@ -277,3 +289,8 @@ class StreamMixin:
         self._chmask[r] = bad_bits
         self._excl[r] = self._excluded
         self._n += m
+
+
+def whole_fix(fix: tuple) -> bool:
+    """A fix with every position and velocity component (what a start needs)."""
+    return bool(np.isfinite(fix[1]).all() and np.isfinite(fix[2]).all())

@@ -45,6 +45,12 @@ class Measurement(NamedTuple):
             self.H, p, self.R, kernels.ABSENT if self.cross is None else self.cross
         )
 
+    def take(self, rows: np.ndarray) -> Measurement:
+        """The measurement of the rows ``rows`` (boolean (m,)) only: the components a
+        source did not measure (a fix without altitude) left out."""
+        cross = None if self.cross is None else self.cross[:, rows]
+        return Measurement(self.z[rows], self.H[rows], self.R[np.ix_(rows, rows)], cross)
+
 
 def update_correlated(
     x: np.ndarray,

@@ -518,7 +518,7 @@ def fix_range_problems(
     lon = np.atleast_1d(np.asarray(lon_deg, dtype=float))
     alt = np.atleast_1d(np.asarray(alt_m, dtype=float))
     vel = np.asarray(vel_ned_mps, dtype=float).reshape(lat.shape[0], 3)
-    speed = np.sqrt(np.einsum("mi,mi->m", vel, vel))
+    speed = np.sqrt(np.nansum(vel * vel, axis=1))  # a component not given (NaN) left out
     bad = (
         np.abs(lat) > 90.0,
         np.abs(lon) > 180.0,

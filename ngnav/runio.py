@@ -9,8 +9,10 @@ Formats (header row first, comma separated, one row per sample or fix):
   times, is an error naming file and line.
 - ``gps.csv``: ``t_s,lat_deg,lon_deg,alt_m,vn_mps,ve_mps,vd_mps,h_acc_m,v_acc_m,vel_acc_mps``
   and optionally ``fix_type`` (3 = 3-D fix) and ``latency_s``. A row whose
-  ``fix_type`` is below 3, or with an empty/nan position, velocity or accuracy
-  cell, is skipped and counted ("no fix").
+  ``fix_type`` is below 3, or with an empty/nan latitude, longitude or ``h_acc_m``,
+  is skipped and counted ("no fix"). An empty altitude (or ``v_acc_m``), horizontal
+  velocity (``vn_mps``/``ve_mps``), vertical velocity or ``vel_acc_mps`` is a field
+  the receiver did not give: the fix is used for the rest, counted per field.
 - ``truth.csv`` (simulations only): ``t_s,n_m,e_m,d_m,vn_mps,ve_mps,vd_mps,qw,qx,qy,qz,
   wx_radps,wy_radps,wz_radps,wdx_radps2,wdy_radps2,wdz_radps2,fx_mps2,fy_mps2,fz_mps2``.
 
@@ -214,10 +216,26 @@ def read_gps_csv(path: str | Path) -> tuple[GpsFixes, ReadReport]:
         nofix = ~(col["fix_type"] >= 3)
         report.add("no fix (fix_type < 3)", int(np.count_nonzero(nofix)))
         ok &= ~nofix
-    vals = np.column_stack([col[c] for c in GPS_COLUMNS[1:]])
-    nan_rows = ok & ~np.all(np.isfinite(vals), axis=1)
+    # an empty altitude or velocity (or its accuracy) is a field the receiver did not
+    # give: the fix is used for the rest; latitude, longitude and h_acc_m it must have
+    fin = {c: np.isfinite(col[c]) for c in GPS_COLUMNS[1:]}
+    nan_rows = ok & ~(fin["lat_deg"] & fin["lon_deg"] & fin["h_acc_m"])
     report.add("no fix (empty or nan cell)", int(np.count_nonzero(nan_rows)))
     ok &= ~nan_rows
+    given = {
+        "altitude": fin["alt_m"] & fin["v_acc_m"],
+        "horizontal velocity": fin["vn_mps"] & fin["ve_mps"] & fin["vel_acc_mps"],
+        "vertical velocity": fin["vd_mps"] & fin["vel_acc_mps"],
+    }
+    for what, has in given.items():
+        report.add(f"fixes without {what} (the rest used)", int(np.count_nonzero(ok & ~has)))
+    col["alt_m"] = np.where(given["altitude"], col["alt_m"], np.nan)
+    col["v_acc_m"] = np.where(given["altitude"], col["v_acc_m"], 1.0)
+    for c in ("vn_mps", "ve_mps"):
+        col[c] = np.where(given["horizontal velocity"], col[c], np.nan)
+    col["vd_mps"] = np.where(given["vertical velocity"], col["vd_mps"], np.nan)
+    has_vel = given["horizontal velocity"] | given["vertical velocity"]
+    col["vel_acc_mps"] = np.where(has_vel, col["vel_acc_mps"], 1.0)
     acc = np.column_stack([col["h_acc_m"], col["v_acc_m"], col["vel_acc_mps"]])
     bad_acc = ok & np.any(acc <= 0, axis=1)
     report.add("no fix (accuracy not positive)", int(np.count_nonzero(bad_acc)))

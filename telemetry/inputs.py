@@ -15,10 +15,12 @@ Fields used
   (< 3 is skipped and counted), ``lat``/``lon`` (degE7), ``alt`` (m; ngnav
   carries the WGS-84 *ellipsoidal* height here, as in ``gps.csv``), ``vn``,
   ``ve``, ``vd`` (m/s), ``horiz_accuracy``, ``vert_accuracy``,
-  ``speed_accuracy`` (1-sigma, m and m/s). Fields flagged in
-  ``ignore_flags`` fall back to the configured accuracies.
+  ``speed_accuracy`` (1-sigma, m and m/s). Accuracies flagged in
+  ``ignore_flags`` fall back to the configured ones; an altitude or velocity flagged
+  ignored is left out (NaN) and the filter fuses the rest.
 - ``GPS_RAW_INT`` and ``HIL_GPS``: position, ``vel``/``cog`` or ``vn``/``ve``/``vd``;
-  accuracies they lack come from :class:`GpsDefaults`.
+  accuracies they lack come from :class:`GpsDefaults`. GPS_RAW_INT has no vertical
+  velocity (left out), and no velocity at all when ``vel`` or ``cog`` is unknown.
 - ``NGNAV_CONFIG_TEXT``: the run's ``config.toml`` in chunks (CRC-32 checked).
 
 Times: ``time_usec`` is microseconds on the run clock (``t_s * 1e6``,
@@ -46,6 +48,13 @@ BATCH_FLOATS = 54
 SAMPLE_MAX_CHANNELS = 16
 #: Bytes of config text per NGNAV_CONFIG_TEXT chunk.
 CONFIG_CHUNK = 200
+#: A fix used without a field its source did not give: counted per field (row index).
+_ABSENT_KINDS = {
+    2: "gps without altitude (the rest used)",
+    3: "gps without horizontal velocity (the rest used)",
+    5: "gps without vertical velocity (the rest used)",
+}
+
 #: GPS_INPUT ignore flags for the fields ngnav does not send (HDOP, VDOP).
 _IGNORE_DOP = mavlink.GPS_INPUT_IGNORE_FLAG_HDOP | mavlink.GPS_INPUT_IGNORE_FLAG_VDOP
 
@@ -108,16 +117,27 @@ def gps_input_message(fixes: GpsFixes, m: int) -> tuple[int, mavlink.MAVLink_mes
     t_us = int(to_usec(fixes.t_s[m]))
     arrival = int(to_usec(fixes.t_s[m] + fixes.latency_s[m]))
     v = fixes.vel_ned_mps[m]
+    alt = float(fixes.alt_m[m])
+    flags = _IGNORE_DOP
+    # a field the fix lacks (NaN) goes as 0 with its ignore flag
+    for absent, flag in (
+        (not math.isfinite(alt), mavlink.GPS_INPUT_IGNORE_FLAG_ALT),
+        (not np.isfinite(v[0:2]).all(), mavlink.GPS_INPUT_IGNORE_FLAG_VEL_HORIZ),
+        (not math.isfinite(v[2]), mavlink.GPS_INPUT_IGNORE_FLAG_VEL_VERT),
+    ):
+        if absent:
+            flags |= flag
+    v = np.nan_to_num(v)
     msg = mavlink.MAVLink_gps_input_message(
         t_us,
         0,
-        _IGNORE_DOP,
+        flags,
         0,
         0,
         3,
         round(float(fixes.lat_deg[m]) * 1e7),
         round(float(fixes.lon_deg[m]) * 1e7),
-        float(fixes.alt_m[m]),
+        alt if math.isfinite(alt) else 0.0,
         0.0,
         0.0,
         float(v[0]),
@@ -382,13 +402,18 @@ class InputAssembler:
             self._add_chunk(msg)
 
     # --------------------------------------------------------------- gps
-    def _push_gps(self, t_us: int, row: tuple[float, ...]) -> None:
-        if not all(math.isfinite(x) for x in row):
+    def _push_gps(self, t_us: int, row: tuple[float, ...], absent: tuple[int, ...] = ()) -> None:
+        """Check a fix row (lat, lon, alt, vn, ve, vd, h_acc, v_acc, vel_acc) and pass it
+        on; the fields at ``absent`` the source did not give go on as NaN (the filter
+        fuses the rest), each kind counted."""
+        given = [x for i, x in enumerate(row) if i not in absent]
+        if not all(math.isfinite(x) for x in given):
             self.counts.add("non-finite field")
             return
         if row[6] <= 0 or row[7] <= 0 or row[8] <= 0:
             self.counts.add("gps accuracy not positive")
             return
+        row = tuple(math.nan if i in absent else x for i, x in enumerate(row))
         k = int(fix_range_problems(row[0], row[1], row[2], row[3:6])[0])
         if k >= 0:
             self.counts.add(f"gps {FIX_RANGE_KINDS[k]}")
@@ -398,6 +423,9 @@ class InputAssembler:
             self.counts.add(kind)
             return
         self._last_gps_t = t_us
+        for i in absent:
+            if i in _ABSENT_KINDS:
+                self.counts.add(_ABSENT_KINDS[i])
         if self.on_fix is not None:
             self.on_fix(t_us, row)
         else:
@@ -420,12 +448,17 @@ class InputAssembler:
             if f & mavlink.GPS_INPUT_IGNORE_FLAG_SPEED_ACCURACY
             else msg.speed_accuracy
         )
-        if f & (mavlink.GPS_INPUT_IGNORE_FLAG_VEL_HORIZ | mavlink.GPS_INPUT_IGNORE_FLAG_VEL_VERT):
-            self.counts.add("gps without velocity")
-            return
+        absent = ()
+        if f & mavlink.GPS_INPUT_IGNORE_FLAG_ALT:
+            absent += (2,)
+        if f & mavlink.GPS_INPUT_IGNORE_FLAG_VEL_HORIZ:
+            absent += (3, 4)
+        if f & mavlink.GPS_INPUT_IGNORE_FLAG_VEL_VERT:
+            absent += (5,)
         self._push_gps(
             msg.time_usec,
             (msg.lat * 1e-7, msg.lon * 1e-7, msg.alt, msg.vn, msg.ve, msg.vd, h, v, s),
+            absent,
         )
 
     def _add_gps_raw(self, msg, t_us: int, fix_type: int, vel_cms: int, cog_cdeg: int, ned) -> None:
@@ -434,12 +467,15 @@ class InputAssembler:
             return
         if ned is not None:
             vn, ve, vd = (x / 100.0 for x in ned)
+            absent = ()
+        elif vel_cms == 65535 or cog_cdeg == 65535:
+            vn = ve = vd = 0.0
+            absent = (3, 4, 5)
         else:
-            if vel_cms == 65535 or cog_cdeg == 65535:
-                self.counts.add("gps without velocity")
-                return
+            # GPS_RAW_INT: ground speed along the course; no vertical velocity
             cog = math.radians(cog_cdeg / 100.0)
             vn, ve, vd = vel_cms / 100.0 * math.cos(cog), vel_cms / 100.0 * math.sin(cog), 0.0
+            absent = (5,)
         d = self.gps_defaults
         self._push_gps(
             t_us,
@@ -454,6 +490,7 @@ class InputAssembler:
                 d.v_acc_m,
                 d.vel_acc_mps,
             ),
+            absent,
         )
 
     # ------------------------------------------------------------ config

@@ -418,4 +418,5 @@ def _int(x: float, bits: int) -> int:
 
 
 def _ratio(nis: float, gate: float) -> float:
-    return float(nis / gate) if math.isfinite(nis) else float("inf")
+    """A test ratio: NIS over its gate; 0 for a component not measured (NaN)."""
+    return 0.0 if math.isnan(nis) else float(nis / gate)

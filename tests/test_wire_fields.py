@@ -881,31 +881,77 @@ def test_gps_input_ignored_accuracy_falls_back_to_its_default(flag: int, index: 
     np.testing.assert_allclose(row, exp, rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("flag", [IGNORE_VEL_HORIZ, IGNORE_VEL_VERT])
-def test_gps_input_without_velocity_is_dropped(flag: int):
-    """A fix whose horizontal or vertical velocity is flagged ignored is counted, not used."""
+@pytest.mark.parametrize(
+    ("flag", "absent", "kinds"),
+    [
+        (IGNORE_ALT, [2], ["gps without altitude (the rest used)"]),
+        (IGNORE_VEL_HORIZ, [3, 4], ["gps without horizontal velocity (the rest used)"]),
+        (IGNORE_VEL_VERT, [5], ["gps without vertical velocity (the rest used)"]),
+        (
+            IGNORE_ALT | IGNORE_VEL_VERT,
+            [2, 5],
+            [
+                "gps without altitude (the rest used)",
+                "gps without vertical velocity (the rest used)",
+            ],
+        ),
+    ],
+)
+def test_gps_input_ignored_fields_go_on_as_not_given(flag: int, absent, kinds):
+    """An altitude or velocity flagged ignored goes on as NaN (the filter fuses the rest),
+    counted per field; every other field is read as usual."""
     got, counts = _read_fixes(common_frame(_gps_input(ignore=flag)))
-    assert got == [] and counts == {"frames decoded": 1, "gps without velocity": 1}
+    ((_, row),) = got
+    exp = [math.nan if i in absent else x for i, x in enumerate(GPS_INPUT_ROW)]
+    np.testing.assert_allclose(row, exp, rtol=0, atol=1e-12)
+    assert counts == {"frames decoded": 1, **{k: 1 for k in kinds}}
+
+
+def test_gps_input_encodes_a_missing_field_as_ignored():
+    """A fix lacking its altitude and vertical velocity (NaN) is written with those ignore
+    flags, and reads back the same."""
+    fixes = GpsFixes(
+        t_s=np.array([1.5]),
+        lat_deg=np.array([34.7654321]),
+        lon_deg=np.array([-106.5432109]),
+        alt_m=np.array([np.nan]),
+        vel_ned_mps=np.array([[12.5, -3.25, np.nan]]),
+        h_acc_m=np.array([1.75]),
+        v_acc_m=np.array([3.5]),
+        vel_acc_mps=np.array([0.125]),
+        latency_s=np.array([0.0]),
+    )
+    _, msg = gps_input_message(fixes, 0)
+    assert msg.ignore_flags & (IGNORE_ALT | IGNORE_VEL_VERT) == IGNORE_ALT | IGNORE_VEL_VERT
+    assert not msg.ignore_flags & IGNORE_VEL_HORIZ
+    ((_, row),) = _read_fixes(common_frame(msg))[0]
+    exp = [34.7654321, -106.5432109, math.nan, 12.5, -3.25, math.nan, 1.75, 3.5, 0.125]
+    np.testing.assert_allclose(row, exp, rtol=0, atol=1e-9)
 
 
 def test_gps_raw_int_read_fields():
     """GPS_RAW_INT: degE7, alt mm -> m, speed cm/s along cog cdeg -> vN = v cos, vE = v sin,
-    vD 0; accuracies from the defaults."""
+    vD not given (NaN, counted); accuracies from the defaults. An unknown speed or course
+    leaves the velocity out, not the fix."""
     msg = common.MAVLink_gps_raw_int_message(
         2_000_000, 3, 347654321, -1065432109, 1523250, 120, 250, 2000, 3000, 11
     )
     got, counts = _read_fixes(common_frame(msg))
-    assert counts == {"frames decoded": 1}
+    vertical = "gps without vertical velocity (the rest used)"
+    assert counts == {"frames decoded": 1, vertical: 1}
     ((t_us, row),) = got
     assert t_us == 2_000_000
-    exp = (34.7654321, -106.5432109, 1523.25, 20.0 * math.sqrt(3) / 2, 10.0, 0.0, 4.25, 6.5, 0.625)
-    np.testing.assert_allclose(row, exp, rtol=0, atol=1e-9)
+    exp = (34.7654321, -106.5432109, 1523.25, 20.0 * math.sqrt(3) / 2, 10.0, math.nan)
+    np.testing.assert_allclose(row, (*exp, 4.25, 6.5, 0.625), rtol=0, atol=1e-9)
     for vel, cog in ((65535, 3000), (2000, 65535)):
         unknown = common.MAVLink_gps_raw_int_message(
             3_000_000, 3, 347654321, -1065432109, 1523250, 120, 250, vel, cog, 11
         )
         got, counts = _read_fixes(common_frame(unknown))
-        assert got == [] and counts["gps without velocity"] == 1
+        ((_, row),) = got
+        assert np.isnan(row[3:6]).all()
+        np.testing.assert_allclose(row[0:3], exp[0:3], rtol=0, atol=1e-9)
+        assert counts[vertical] == counts["gps without horizontal velocity (the rest used)"] == 1
     got, counts = _read_fixes(
         common_frame(common.MAVLink_gps_raw_int_message(1, 2, 1, 1, 1, 1, 1, 1, 1, 1))
     )
@@ -1095,15 +1141,18 @@ def test_gps_csv_written_columns(tmp_path: Path):
 
 
 def test_gps_csv_read_hand_written(tmp_path: Path):
-    """gps.csv read by header name; fix_type < 3, an empty cell, a zero accuracy and each
-    out-of-range field are skipped and counted; latency_s read; every field of the kept
-    fixes in its place."""
+    """gps.csv read by header name; fix_type < 3, an empty latitude, a zero accuracy and each
+    out-of-range field are skipped and counted; an empty altitude or vertical velocity is
+    a field not given (NaN, counted); latency_s read; every field of the kept fixes in its
+    place."""
     (tmp_path / "gps.csv").write_text(
         "lon_deg,t_s,lat_deg,alt_m,vd_mps,ve_mps,vn_mps,vel_acc_mps,v_acc_m,h_acc_m,"
         "latency_s,fix_type\n"
         "-106.5,0.0,34.0,1500.0,0.5,60.0,1.0,0.1,3.0,1.5,0.05,3\n"
         "-106.4,0.1,34.1,1501.0,0.5,60.0,1.0,0.1,3.0,1.5,0.05,2\n"
         "-106.3,0.2,34.2,1502.0,,60.0,1.0,0.1,3.0,1.5,0.05,3\n"
+        "-106.3,0.25,34.25,,0.5,60.0,1.0,0.1,,1.5,0.05,3\n"
+        "-106.3,0.27,,1502.0,0.5,60.0,1.0,0.1,3.0,1.5,0.05,3\n"
         "-106.2,0.3,34.3,1503.0,0.5,60.0,1.0,0.1,3.0,0.0,0.05,3\n"
         "-106.1,0.4,34.4,1504.5,-0.25,-61.0,2.5,0.2,4.0,2.5,0.125,4\n"
         "-106.0,0.5,91.0,1505.0,0.5,60.0,1.0,0.1,3.0,1.5,0.05,3\n"
@@ -1120,16 +1169,20 @@ def test_gps_csv_read_hand_written(tmp_path: Path):
         "no fix (longitude beyond +-180 deg)": 1,
         "no fix (altitude outside -1 km .. 100 km)": 1,
         "no fix (speed above 3 km/s)": 1,
+        "fixes without vertical velocity (the rest used)": 1,
+        "fixes without altitude (the rest used)": 1,
     }
-    np.testing.assert_array_equal(fx.t_s, [0.0, 0.4])
-    np.testing.assert_array_equal(fx.lat_deg, [34.0, 34.4])
-    np.testing.assert_array_equal(fx.lon_deg, [-106.5, -106.1])
-    np.testing.assert_array_equal(fx.alt_m, [1500.0, 1504.5])
-    np.testing.assert_array_equal(fx.vel_ned_mps, [[1.0, 60.0, 0.5], [2.5, -61.0, -0.25]])
-    np.testing.assert_array_equal(fx.h_acc_m, [1.5, 2.5])
-    np.testing.assert_array_equal(fx.v_acc_m, [3.0, 4.0])
-    np.testing.assert_array_equal(fx.vel_acc_mps, [0.1, 0.2])
-    np.testing.assert_array_equal(fx.latency_s, [0.05, 0.125])
+    np.testing.assert_array_equal(fx.t_s, [0.0, 0.2, 0.25, 0.4])
+    np.testing.assert_array_equal(fx.lat_deg, [34.0, 34.2, 34.25, 34.4])
+    np.testing.assert_array_equal(fx.lon_deg, [-106.5, -106.3, -106.3, -106.1])
+    np.testing.assert_array_equal(fx.alt_m, [1500.0, 1502.0, np.nan, 1504.5])
+    np.testing.assert_array_equal(
+        fx.vel_ned_mps,
+        [[1.0, 60.0, 0.5], [1.0, 60.0, np.nan], [1.0, 60.0, 0.5], [2.5, -61.0, -0.25]],
+    )
+    np.testing.assert_array_equal(fx.h_acc_m, [1.5, 1.5, 1.5, 2.5])
+    np.testing.assert_array_equal(fx.vel_acc_mps, [0.1, 0.1, 0.1, 0.2])
+    np.testing.assert_array_equal(fx.latency_s, [0.05, 0.05, 0.05, 0.125])
 
 
 TRUTH_HEADER = [
