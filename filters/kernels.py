@@ -268,6 +268,30 @@ def inject(q: np.ndarray, v_old: np.ndarray, dth: np.ndarray, dv: np.ndarray, bo
 
 
 @njit(cache=True)
+def inject_and_reset(q: np.ndarray, v_old: np.ndarray, dx: np.ndarray, p: np.ndarray, body: bool):
+    """:func:`inject` of the error state ``dx`` (n,) and its reset ``G P G^T``
+    (:func:`reset_rows`) in one call (``NavFilter._inject``); returns ``q``, the velocity,
+    the new P and the Jacobian's rows ``ga``, ``gvv``, ``gvt`` (for the smoother's clone)."""
+    dth = dx[_ATT : _ATT + 3].copy()
+    q_new, v_new, ga, gvv, gvt = inject(q, v_old, dth, dx[_VEL : _VEL + 3].copy(), body)
+    return q_new, v_new, reset_rows(p, ga, gvv, gvt, _ATT, _VEL), ga, gvv, gvt
+
+
+@njit(cache=True)
+def symmetrised(p: np.ndarray) -> np.ndarray:
+    """``(P + P^T) / 2`` (n, n), a new array."""
+    n = p.shape[0]
+    out = np.empty((n, n))
+    for i in range(n):
+        out[i, i] = p[i, i]
+        for j in range(i + 1, n):
+            s = 0.5 * (p[i, j] + p[j, i])
+            out[i, j] = s
+            out[j, i] = s
+    return out
+
+
+@njit(cache=True)
 def attitude_reset_rows(dth: np.ndarray) -> np.ndarray:
     """``I + [dth]x / 2`` with its heading column held at ``e_z`` (3, 3)
     (``algebra.attitude_reset_jacobian``, which says why)."""
@@ -611,6 +635,46 @@ def rate_model(
         hr += geometry_rate_jacobian(w_mean, dr, axes, solve_t)[6:]
     h[:, r : r + 3] = hr
     return pred, h
+
+
+@njit(cache=True)
+def rate_measurement(
+    w_block: np.ndarray,
+    pairs: np.ndarray,
+    h_base: np.ndarray,
+    quad_d: np.ndarray,
+    aided: np.ndarray,
+    quad6_d: np.ndarray,
+    sg: np.ndarray,
+    dr: np.ndarray,
+    axes: np.ndarray,
+    solve_t: np.ndarray,
+    dr0: int,
+    p: np.ndarray,
+    bias_q: np.ndarray,
+    sqq: np.ndarray,
+    k: int,
+):
+    """The rate products' prediction (nq,), Jacobian (nq, n) and noise (nq, nq) for a
+    block of ``k`` samples (``NavFilter.measure_rate``, which says why): :func:`rate_model`
+    at the rate shrunk by its variance in ``p`` (n, n), plus the rate error's product
+    moments (:func:`product_moments`), the biases ``bias_q`` and ``S G dr_hat``; the noise
+    ``sqq / k`` plus the products' spread."""
+    prr = np.ascontiguousarray(p[_RATE : _RATE + 3, _RATE : _RATE + 3])
+    rate_var = np.empty(3)
+    for i in range(3):
+        rate_var[i] = prr[i, i]
+    pred, h = rate_model(
+        w_block, pairs, rate_var, h_base, quad_d, aided, quad6_d, sg, dr, axes, solve_t, dr0
+    )
+    pij, spread = product_moments(prr, pairs)
+    pred = pred + pij + bias_q
+    r = sqq * (1.0 / k)
+    for i in range(r.shape[0]):
+        r[i, i] += spread[i]
+    if sg.shape[0]:
+        pred = pred + np.ascontiguousarray(sg[6:]) @ dr
+    return pred, h, r
 
 
 @njit(cache=True)

@@ -79,16 +79,27 @@ class MeasurementsMixin:
         noise the measurement's is correlated with (:meth:`rate_noise_cross`;
         ``held`` (K,) marks its held samples); None: independent.
         """
-        nq = self.layout.nq
-        prr = self.P[RATE, RATE]
-        pred, h = self.rate_model(w_block, sg, np.diagonal(prr))
-        # second order: the mean P_ij of d_i d_j and its spread about it
-        pij, spread = kernels.product_moments(prr, self.quad_pairs)
-        pred = pred + pij + self.bias[6:]
-        r = self._sqq * (1.0 / k)
-        r.flat[:: nq + 1] += spread
-        if self.layout.n_dr:
-            pred = pred + sg[6:] @ self.dr
+        lay = self.layout
+        with_dr = bool(lay.n_dr)
+        # rate_model's at the shrunk rate, with the second order: the mean P_ij of d_i d_j
+        # and its spread about it
+        pred, h, r = kernels.rate_measurement(
+            np.asarray(w_block, dtype=float),
+            self.quad_pairs,
+            self._h_rate_base,
+            self._quad_d,
+            self._aided_rate_cols,
+            self._quad6_d,
+            sg if with_dr else kernels.ABSENT,
+            self.dr,
+            self.sensor_axes_b if with_dr else kernels.ABSENT,
+            self._solve_t if with_dr else kernels.ABSENT,
+            lay.dr.start,
+            self.P,
+            self.bias[6:],
+            self._sqq,
+            k,
+        )
         m = None if block is None else self.rate_noise_cross(*block, held)
         rows = self.rate_rows
         if self.rate_dof < rows.shape[0]:

@@ -7,7 +7,6 @@ import numpy as np
 from filters import kernels
 from filters.algebra import (
     BODY_INJECTION_MAX_CURVATURE_MPS,
-    apply_reset_jacobian,
 )
 from filters.state import ATT, POS, RATE, VEL
 from ngnav.rotation import (
@@ -171,8 +170,11 @@ class NominalMixin:
             0.5 * self._speed() * float(dth @ dth) <= BODY_INJECTION_MAX_CURVATURE_MPS
         )
         # body-style, the body velocity takes the correction and the corrected attitude
-        # carries it
-        self.q, self.vel, ga, gvv, gvt = kernels.inject(self.q, v_old, dth, dx[VEL], body)
+        # carries it; P takes the reset Jacobian G P G^T (first order): G = I except the
+        # attitude rows (attitude_reset_jacobian) and, body-style, the velocity rows
+        self.q, self.vel, self.P, ga, gvv, gvt = kernels.inject_and_reset(
+            self.q, v_old, dx, self.P, body
+        )
         self.w = self.w + dx[RATE]
         self.bias = self.bias + dx[self.layout.bias]
         self.dr = self.dr + dx[self.layout.dr]
@@ -181,13 +183,11 @@ class NominalMixin:
             self.aoa_b += float(da[0])
             if self.layout.n_aoa == 2:
                 self.aoa_k += float(da[1])
-        # reset Jacobian (first order): G = I except the attitude rows
-        # (attitude_reset_jacobian) and, body-style, the velocity rows
-        if not body:
-            gvv = gvt = None
-        self.P = apply_reset_jacobian(self.P, ga, gvv, gvt)
         if self.lag is not None:
-            self.lag.reset(ga, gvv, gvt)
+            if body:
+                self.lag.reset(ga, gvv, gvt)
+            else:
+                self.lag.reset(ga)
         self.x = np.zeros(self.x.shape[0])
 
     def reset_to_fix(

@@ -299,63 +299,68 @@ class Pipeline(
             vel = vel + mc
             p[VEL, VEL] += cc
         lay = nf.layout
-        aoa = (nf.aoa, nf.aoa_sigma) if nf.layout.n_aoa else (None, None)
+        aoa = (nf.aoa, nf.aoa_sigma) if lay.n_aoa else (None, None)
         c = nf.counters
         if self._converging and self._converged(p):
             self._converging = False
         bound = None if pb is None else pb.copy()
+        valid = not self._converging
+        extra = (self.block_faulty, valid)
+        # what the epoch's NavEstimate is built from when it is read (:attr:`latest`); the
+        # filter replaces its state arrays (never writes into them), so they need no copy
         self._latest = None
         self._latest_args = (
             (nf.t_s, nf.pos, vel, nf.q, nf.w, nf.bias, p, bound, *aoa),
-            dict(
-                last_gps=self.last_gps,
-                t_last_position_fix_s=nf.t_last_position_fix,
-                resets=c.gps_resets + c.gps_gap_resets,
-                rate_innovation=nf.last_rate_innovation.copy(),
-                rate_nis=self.last_rate_nis,
-                rate_rejected=bool(self.last_rate_nis > nf.gate_q),
-                forecast_fallback=bool(self.block_fallbacks),
-                forecast_fallbacks=self.n_fallbacks,
-                held_samples=self.counts["samples held (non-finite)"]
-                + self.counts["samples held (saturated)"],
-                rate_updates_rejected=c.rate_rejected,
-                faulty_channels=self.block_faulty,
-                state_blocks=self._state_blocks(),
-                dr_m=nf.dr.copy() if lay.n_dr else None,
-                aoa_states=np.array([nf.aoa_b, nf.aoa_k][: lay.n_aoa]) if lay.n_aoa else None,
-                valid=not self._converging,
+            (
+                self.last_gps,
+                nf.t_last_position_fix,
+                c.gps_resets + c.gps_gap_resets,
+                nf.last_rate_innovation,
+                self.last_rate_nis,
+                nf.gate_q,
+                self.block_fallbacks,
+                self.n_fallbacks,
+                self.counts["samples held (non-finite)"] + self.counts["samples held (saturated)"],
+                c.rate_rejected,
+                self.block_faulty,
+                lay,
+                nf.dr if lay.n_dr else None,
+                (nf.aoa_b, nf.aoa_k)[: lay.n_aoa],
+                valid,
             ),
         )
-        # the epoch's row: the filter replaces its state arrays (never writes into them),
-        # and these copies are the row's own
-        self._rows.append(
-            (
-                nf.t_s,
-                nf.pos.copy(),
-                vel.copy(),
-                nf.q.copy(),
-                nf.w.copy(),
-                nf.bias.copy(),
-                p[:12, :12].copy(),
-                bound,
-                *aoa,
-                self.block_faulty,
-                not self._converging,
-            )
-        )
+        cov = p[:12, :12].copy()  # a view would keep the whole P of every epoch
+        self._rows.append((nf.t_s, nf.pos, vel, nf.q, nf.w, nf.bias, cov, bound, *aoa, *extra))
 
     @property
     def latest(self) -> NavEstimate | None:
         """The latest epoch's record (None before the first); built when first asked for
         (a run without an ``on_epoch`` reader builds only the last one)."""
         if self._latest is None and self._latest_args is not None:
-            args, kwargs = self._latest_args
-            self._latest = NavEstimate(*args, **kwargs)
+            args, extra = self._latest_args
+            gps, t_fix, resets, y, nis, gate, fb, fbs, held, rej, faulty, lay, dr, aoa, ok = extra
+            self._latest = NavEstimate(
+                *args,
+                last_gps=gps,
+                t_last_position_fix_s=t_fix,
+                resets=resets,
+                rate_innovation=y,
+                rate_nis=nis,
+                rate_rejected=bool(nis > gate),
+                forecast_fallback=bool(fb),
+                forecast_fallbacks=fbs,
+                held_samples=held,
+                rate_updates_rejected=rej,
+                faulty_channels=faulty,
+                state_blocks=self._state_blocks(lay),
+                dr_m=dr,
+                aoa_states=np.array(aoa) if aoa else None,
+                valid=ok,
+            )
         return self._latest
 
-    def _state_blocks(self) -> tuple[tuple[str, int], ...]:
+    def _state_blocks(self, lay) -> tuple[tuple[str, int], ...]:
         """The layout's blocks with states, as :class:`NavEstimate` names them (cached)."""
-        lay = self.nf.layout
         if self._blocks_for is not lay:
             self._blocks_for = lay
             self._blocks = tuple((name, dof) for name, dof in lay.blocks if dof)

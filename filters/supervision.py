@@ -146,7 +146,7 @@ class SupervisionMixin:
         return True
 
     def _symmetrise(self) -> None:
-        self.P = 0.5 * (self.P + self.P.T)
+        self.P = kernels.symmetrised(self.P)
 
     def check_covariance(self, where: str, full: bool = True) -> None:
         """Raise :class:`CovarianceError` unless P is finite, symmetric and positive definite.
