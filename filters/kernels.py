@@ -210,6 +210,53 @@ def body_frame_gravity(
 
 
 @njit(cache=True)
+def propagate_nominal(
+    q: np.ndarray,
+    pos: np.ndarray,
+    vel: np.ndarray,
+    w0: np.ndarray,
+    p: np.ndarray,
+    g: np.ndarray,
+    body: bool,
+    last_wdot: np.ndarray,
+    wdot: np.ndarray,
+    bw: np.ndarray,
+    last_f: np.ndarray,
+    f: np.ndarray,
+    bf: np.ndarray,
+    mw: np.ndarray,
+    mw0: np.ndarray,
+    wts: np.ndarray,
+    wts1: np.ndarray,
+    dt: float,
+):
+    """The nominal state through one block (``NavFilter.propagate``, which says why):
+    the force map and gravity for the velocity error's frame (``body``), then
+    :func:`mechanise`. Returns the rates at the K samples (K, 3), the new ``q``, ``pos``,
+    ``vel``, ``C_nb`` at the block start and the block's mean NED force (3,)."""
+    c0 = dcm(q)
+    if body:
+        # the truth's body velocity moves by f - w x v_b + C_true^T g: its mean holds
+        # gravity's attitude curvature and the rate-velocity product's -E[dw x dv_b]
+        m = c0
+        g_n = body_frame_gravity(g, p, c0, vel, _ATT, _VEL, _RATE)
+    else:
+        # E[C f] = (I + (P_att - tr(P_att) I) / 2) C f  (second order in the attitude error,
+        # about the estimate: the transition's -[f_n]x is built on this force)
+        pa = np.ascontiguousarray(p[_ATT : _ATT + 3, _ATT : _ATT + 3])
+        m = pa @ c0
+        m *= 0.5
+        m += (1.0 - 0.5 * (pa[0, 0] + pa[1, 1] + pa[2, 2])) * c0
+        g_n = g
+    w, y, rot = mechanise(last_wdot, wdot, bw, last_f, f, bf, mw, mw0, wts, wts1, w0, m, g_n)
+    k = wdot.shape[0]
+    pos_new = pos + (k * dt) * vel + y[1]
+    vel_new = vel + y[0]
+    q_new = rotate_right(q, rot[0], rot[1], rot[2])
+    return w, q_new, pos_new, vel_new, c0, y[2] - g_n
+
+
+@njit(cache=True)
 def remove_feature_residual(
     q: np.ndarray,
     w: np.ndarray,
@@ -518,6 +565,34 @@ def rotated_nav_noise(c: np.ndarray, q12_body: np.ndarray, q_walks: np.ndarray) 
     q = q_walks.copy()
     q[:N_NAV, :N_NAV] = t12 @ q12_body @ t12.T
     return q
+
+
+@njit(cache=True)
+def propagation_matrices(
+    fc_base: np.ndarray,
+    f_n: np.ndarray,
+    c: np.ndarray,
+    bias_effect_f: np.ndarray,
+    bias0: int,
+    quad_into: np.ndarray,
+    quad6_d: np.ndarray,
+    w: np.ndarray,
+    sg: np.ndarray,
+    dr0: int,
+    dr: np.ndarray,
+    axes: np.ndarray,
+    solve_t: np.ndarray,
+    t: float,
+    q12_body: np.ndarray,
+    q_walks: np.ndarray,
+):
+    """A block's transition and process noise ``(F, Q)`` (n, n) each
+    (``NavFilter.propagation_matrices``): :func:`error_dynamics` through
+    :func:`transition` over ``t`` s, and :func:`rotated_nav_noise`."""
+    fc = error_dynamics(
+        fc_base, f_n, c, bias_effect_f, bias0, quad_into, quad6_d, w, sg, dr0, dr, axes, solve_t
+    )
+    return transition(fc, t), rotated_nav_noise(c, q12_body, q_walks)
 
 
 @njit(cache=True)

@@ -8,7 +8,7 @@ from filters import kernels
 from filters.algebra import (
     BODY_INJECTION_MAX_CURVATURE_MPS,
 )
-from filters.state import ATT, POS, RATE, VEL
+from filters.state import ATT, POS, RATE
 from ngnav.rotation import (
     dcm_from_quat,
     euler_from_quat,
@@ -51,39 +51,35 @@ class NominalMixin:
         k = wdot.shape[0]
         bw, bf = self._feature_offset(sg)
         mw, mw0, wts, wts1 = self._block_weights(k, dt)
-        c0 = kernels.dcm(self.q)
-        pa = self.P[ATT, ATT]
-        g_n = self._g
-        if self.in_body_frame():
-            # the truth's body velocity moves by f - w x v_b + C_true^T g: its mean holds
-            # gravity's attitude curvature, C^T (P_att - tr(P_att) I) g / 2, and the
-            # rate-velocity product's -E[dw x dv_b]
-            m = c0
-            g_n = kernels.body_frame_gravity(
-                g_n, self.P, c0, self.vel, ATT.start, VEL.start, RATE.start
-            )
-        else:
-            # E[C f] = (I + (P_att - tr(P_att) I) / 2) C f  (second order in the attitude
-            # error, about the estimate: the transition's -[f_n]x is built on this force;
-            # the truth's-force sign, tried, was worse: docs/design.md, "Process model")
-            m = pa @ c0
-            m *= 0.5
-            m += (1.0 - 0.5 * (pa[0, 0] + pa[1, 1] + pa[2, 2])) * c0
         # rates, the attitude's rotation vector (second order, with the coning term
         # sum_s cum_s x alpha_s / 2) and the trapezoid's increments of a_n = m f_b0 + g
-        # (f rotated to the block-start body frame by the running attitude): all linear
-        # in the K + 1 samples (kernels.mechanise)
-        w, y, rot = kernels.mechanise(
-            self._last_wdot, wdot, bw, self._last_f, f, bf, mw, mw0, wts, wts1, self.w, m, g_n
+        # (f rotated to the block-start body frame by the running attitude), with the
+        # force's and gravity's second-order means for the velocity error's frame (the
+        # truth's-force sign, tried, was worse: docs/design.md, "Process model")
+        w, self.q, self.pos, self.vel, c0, f_n = kernels.propagate_nominal(
+            self.q,
+            self.pos,
+            self.vel,
+            self.w,
+            self.P,
+            self._g,
+            self.in_body_frame(),
+            self._last_wdot,
+            wdot,
+            bw,
+            self._last_f,
+            f,
+            bf,
+            mw,
+            mw0,
+            wts,
+            wts1,
+            dt,
         )
-        self.pos = self.pos + (k * dt) * self.vel + y[1]
-        self.vel = self.vel + y[0]
-        self.q = kernels.rotate_right(self.q, rot[0], rot[1], rot[2])
         self.w = w[-1].copy()
         self._last_wdot = wdot[-1].copy()
         self._last_f = f[-1].copy()
         self.t_s += k * dt
-        f_n = y[2] - g_n
         self._predict_covariance(k, dt, c0, f_n, sg)
         self._block = (k, dt, c0)  # for the rate measurement of this block
         self.counters.blocks += 1

@@ -92,7 +92,7 @@ class ProcessMixin:
         # by its rate derivative times the rate error
         quad_into = self._quad_into_features
         with_dr = bool(self.layout.n_dr)
-        fc = kernels.error_dynamics(
+        return kernels.propagation_matrices(
             self._fc_base,
             f_n,
             c,
@@ -106,10 +106,10 @@ class ProcessMixin:
             self.dr,
             self.sensor_axes_b if with_dr else kernels.ABSENT,
             self._solve_t if with_dr else kernels.ABSENT,
+            t,
+            self._q12_body(k, dt),
+            self._q_walks(t),
         )
-        phi = kernels.transition(fc, t)
-        q = kernels.rotated_nav_noise(c, self._q12_body(k, dt), self._q_walks(t))
-        return phi, q
 
     def _q_walks(self, t: float) -> np.ndarray:
         """Process noise (n, n) of the random walks over ``t`` s: the biases' and the
