@@ -195,7 +195,10 @@ def cmd_bench_stream(args: argparse.Namespace) -> int:
         f"{scn.gps.rate_hz:g} Hz GPS, estimates at {args.out_rate:g} Hz; "
         f"speed {b.speed:g}x, wall {b.wall_s:.1f} s ({b.flight_s / b.wall_s:.1f}x real time)"
     )
-    print(f"  input: {b.input_datagrams} datagrams sent, {b.input_frames_lost} frames lost")
+    print(
+        f"  input: {b.input_datagrams} datagrams sent, {b.input_datagrams_lost} lost in the "
+        f"socket, {b.input_frames_lost} frames lost (sequence gaps)"
+    )
     print(
         f"  estimates: {b.epochs} epochs, {b.estimate_frames_sent} frames sent, "
         f"{b.estimate_frames_received} received, {b.estimate_frames_lost} lost (sequence gaps)"
