@@ -43,12 +43,20 @@ class MeasurementsMixin:
         With ``quad_feedback`` the rate columns also carry the forecast
         compensation's return of the rate error, ``E_q J6(w)``.
         """
-        lay = self.layout
-        with_dr = bool(lay.n_dr)
         return kernels.rate_model(
             np.asarray(w_block, dtype=float),
             self.quad_pairs,
             _NO_VAR if rate_var is None else np.asarray(rate_var, dtype=float),
+            *self._rate_jacobian_parts(sg),
+        )
+
+    def _rate_jacobian_parts(self, sg: np.ndarray | None) -> tuple:
+        """What the rate products' Jacobian is built from (``kernels.rate_model``'s
+        arguments after the shrink): its constant part, the products' derivatives, the
+        aided products' and, with ``DR`` states, the sensor positions' (``sg``)."""
+        lay = self.layout
+        with_dr = bool(lay.n_dr)
+        return (
             self._h_rate_base,
             self._quad_d,
             self._aided_rate_cols,
@@ -79,22 +87,12 @@ class MeasurementsMixin:
         noise the measurement's is correlated with (:meth:`rate_noise_cross`;
         ``held`` (K,) marks its held samples); None: independent.
         """
-        lay = self.layout
-        with_dr = bool(lay.n_dr)
         # rate_model's at the shrunk rate, with the second order: the mean P_ij of d_i d_j
         # and its spread about it
         pred, h, r = kernels.rate_measurement(
             np.asarray(w_block, dtype=float),
             self.quad_pairs,
-            self._h_rate_base,
-            self._quad_d,
-            self._aided_rate_cols,
-            self._quad6_d,
-            sg if with_dr else kernels.ABSENT,
-            self.dr,
-            self.sensor_axes_b if with_dr else kernels.ABSENT,
-            self._solve_t if with_dr else kernels.ABSENT,
-            lay.dr.start,
+            *self._rate_jacobian_parts(sg),
             self.P,
             self.bias[6:],
             self._sqq,
