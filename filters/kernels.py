@@ -24,6 +24,8 @@ from filters.state import ATT, N_NAV, POS, RATE, VEL
 
 #: An array argument that is not there (a kernel tests its size).
 ABSENT = np.zeros((0, 0))
+#: An absent vector argument.
+NO_VECTOR = np.zeros(0)
 # the navigation blocks' first rows (numba reads them as compile-time constants)
 _POS, _VEL, _ATT, _RATE = POS.start, VEL.start, ATT.start, RATE.start
 
@@ -638,6 +640,58 @@ def geometry_rate_jacobian(
 
 
 # -------- the measurement models
+
+
+@njit(cache=True)
+def block_means(
+    xs: np.ndarray,
+    bad: np.ndarray,
+    n_ok: int,
+    nq: int,
+    bias6: np.ndarray,
+    phi_hat6: np.ndarray,
+    se6: np.ndarray,
+    correct: bool,
+):
+    """A block's mean features and what its forecast missed (``StepMixin._block``).
+
+    ``xs`` (K, m) the compensated features, ``bad`` (K,) the held rows (left out of the
+    means while some are not); ``n_ok`` rows not held. Returns the mean (m,); the mean
+    of the rate products (nq,) over the rows not held (empty without); the forecast's
+    error ``d = mean[:6] - bias6 - phi_hat6`` (6,) (empty without a forecast,
+    ``phi_hat6`` (0,)); and, with ``correct`` and a finite ``d``, ``r = se6 d`` (m,), the
+    error's share of every feature, taken out of both means (else (0,)).
+    """
+    k, m = xs.shape
+    some = 0 < n_ok < k
+    mean = np.zeros(m)
+    n = 0
+    for s in range(k):
+        if some and bad[s]:
+            continue
+        n += 1
+        for j in range(m):
+            mean[j] += xs[s, j]
+    mean *= 1.0 / n
+    quad = np.zeros(0)
+    if n_ok and nq:
+        quad = np.zeros(nq)
+        for s in range(k):
+            if n_ok < k and bad[s]:
+                continue
+            for j in range(nq):
+                quad[j] += xs[s, m - nq + j]
+        quad *= 1.0 / n_ok
+    d = np.zeros(0)
+    r = np.zeros(0)
+    if phi_hat6.shape[0]:
+        d = mean[:6] - bias6 - phi_hat6
+        if correct and np.isfinite(d.sum()):
+            r = np.ascontiguousarray(se6) @ d
+            mean -= r
+            if quad.shape[0]:
+                quad = quad - r[m - nq :]
+    return mean, quad, d, r
 
 
 @njit(cache=True)

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 
+from filters import kernels
 from filters.algebra import shrink_to_size
 from filters.alignment import _gps_course
 from filters.forecast import (
@@ -49,7 +48,9 @@ class StepMixin:
         nq = self._nq
         i0 = self._i0
         b = self._base
-        excluded = int(np.bitwise_or.reduce(self._excl[i0 + 1 - b : i1 + 1 - b]))
+        excluded = 0
+        if self._excluded:  # a channel excluded somewhere (the marks only ever grow)
+            excluded = int(np.bitwise_or.reduce(self._excl[i0 + 1 - b : i1 + 1 - b]))
         if excluded != self._filter_mask:
             self._switch_solve(excluded)
             se = self._se
@@ -123,30 +124,30 @@ class StepMixin:
             )
             fb, qb = nf.propagation_matrices(kk, dt, c_true[i0], f_n_true, sg_true)
             _, p_bound = kf_predict(np.zeros(nf.layout.n), p_bound, fb, qb)
-        good = xs[~bad] if 0 < n_ok < kk else xs
-        self._last_mean = good.sum(axis=0) * (1.0 / good.shape[0])
-        quad_fix = None
+        self._last_mean, quad_mean, d, r_all = kernels.block_means(
+            xs,
+            bad,
+            n_ok,
+            nq,
+            nf.bias[0:6],
+            kernels.NO_VECTOR if phi_hat is None else phi_hat[0:6],
+            kernels.ABSENT if self._se is None else self._se[:, 0:6],
+            self._fe_correct,
+        )
         if phi_hat is not None:
-            self.last_forecast_error = self._last_mean[0:6] - nf.bias[0:6] - phi_hat[0:6]
+            self.last_forecast_error = d
             if self._fe_persistence > 0.0:
-                self._forecast_noise(self.last_forecast_error, n_ok, kk * dt)
-            if self._fe_correct and math.isfinite(self.last_forecast_error.sum()):
+                self._forecast_noise(d, n_ok, kk * dt)
+            if r_all.shape[0]:
                 # what the forecast's error left in the block, out of the state and history
-                # before the rate products are compared, from them too: left in, the rate
-                # update took the rate error it made for the sensor positions' doing (their
-                # NEES, 27 dof, rose from 30 to 51 over tactical's flight, 24 runs; 38 so;
-                # design notes, "the forecast's error out before the rate products")
-                r_all = self._se[:, 0:6] @ self.last_forecast_error
-                r6 = r_all[0:6]
-                w_blk = nf.remove_feature_residual(r6, kk * dt, w_blk, dt)
-                self._last_mean -= r_all
-                quad_fix = r_all[6:]
+                # before the rate products are compared, from them too (kernels.block_means
+                # took it out of the means): left in, the rate update took the rate error it
+                # made for the sensor positions' doing (their NEES, 27 dof, rose from 30 to
+                # 51 over tactical's flight, 24 runs; 38 so; design notes, "the forecast's
+                # error out before the rate products")
+                w_blk = nf.remove_feature_residual(r_all[0:6], kk * dt, w_blk, dt)
         if n_ok and nq:
-            quad = xs[:, 6:] if n_ok == kk else xs[~bad, 6:]
             held = bad if n_ok < kk else None
-            quad_mean = quad.sum(axis=0) * (1.0 / n_ok)
-            if quad_fix is not None:
-                quad_mean = quad_mean - quad_fix
             nis = nf.update_rate(quad_mean, w_blk, n_ok, sg, held)
             self.last_rate_nis = np.nan if nis is None else nis
             if nis is not None:
@@ -178,7 +179,9 @@ class StepMixin:
             # a sliding window: keep the rows the next forecasts read
             self._hist[:window] = self._hist[row - window : row]
             row = window
-        self._hist[row] = np.concatenate([nf.w, self._last_mean[0:6] - nf.bias[0:6]])
+        h = self._hist[row]
+        h[0:3] = nf.w
+        h[3:9] = self._last_mean[0:6] - nf.bias[0:6]
         self._h_n = row + 1
         if rest is not None:
             rest.observe_block(nf.t_s, self._last_mean[0:6], n_ok)
@@ -198,7 +201,7 @@ class StepMixin:
             if sg is not None:
                 sg_f = sg[3:6]
                 f_mean = f_mean - sg_f @ nf.dr
-            k_now = good.shape[0]
+            k_now = n_ok if 0 < n_ok < kk else kk  # the rows in the mean
             if self._f_load_prev is None:
                 f_load, w2, sg_load = f_mean, 1.0 / k_now, sg_f
             else:

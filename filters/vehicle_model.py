@@ -14,6 +14,7 @@ is correlated", "the remainder counted longer in a coast").
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -293,6 +294,7 @@ def blend_spread_var(x0: float, sx: float) -> float:
 SIDESLIP_RATE_HZ = 5.0
 
 
+@functools.lru_cache(maxsize=64)  # a run has one or two block sizes
 def load_extrapolation_weights(k_now: int, k_prev: int) -> tuple[float, float]:
     """Weights ``(w_now, w_prev)`` that take two consecutive block means to the block end.
 

@@ -88,8 +88,7 @@ class GreyPredictor:
         if isinstance(c, str):
             values, fell_back = one_step_forecast(history, c, axis=0)
             return values, int(np.count_nonzero(fell_back))
-        y = history + c
-        f, ok = _gm11_forecast(y, self._ops @ y, c, MAX_ABS_A)
+        f, ok = _gm11_forecast(history, self._ops, c, MAX_ABS_A)
         if ok:
             return f, 0
         values, fell_back = one_step_forecast(history, c, axis=0)
@@ -149,11 +148,13 @@ def noise_gain(predictor, history: np.ndarray, step: float = 1e-6) -> np.ndarray
 
 
 @njit(cache=True)
-def _gm11_forecast(y: np.ndarray, p: np.ndarray, c: np.ndarray, max_abs_a: float):
-    """GM(1,1)'s one-step forecast (C,) of each column of the shifted history ``y`` (n, C)
-    (shift ``c`` (C,)) from ``p``, its window operators' products (2m + 2, C: centred z,
-    centred Y, mean z, mean Y; m = n - 1); and False where a window needs the general
-    path (zero variance, a = 0, |a| > ``max_abs_a``)."""
+def _gm11_forecast(history: np.ndarray, ops: np.ndarray, c: np.ndarray, max_abs_a: float):
+    """GM(1,1)'s one-step forecast (C,) of each column of ``history`` (n, C), shifted by
+    ``c`` (C,), from its window operators ``ops`` (2m + 2, n: centred z, centred Y, mean z,
+    mean Y; m = n - 1); and False where a window needs the general path (zero variance,
+    a = 0, |a| > ``max_abs_a``)."""
+    y = history + c
+    p = ops @ y
     n, nc = y.shape
     m = n - 1
     f = np.empty(nc)
