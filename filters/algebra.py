@@ -42,7 +42,6 @@ def _product_derivatives(pairs: Sequence[Sequence[int]]) -> np.ndarray:
 
 #: The (attitude, velocity) error rows of the body-velocity models' second-order term.
 _DTHETA_DV = np.r_[ATT, VEL]
-_DTHETA_DV_IX = np.ix_(_DTHETA_DV, _DTHETA_DV)
 #: (attitude, velocity, rate) error indices: the body-velocity remainder's variables.
 _DTHETA_DV_DW = np.r_[ATT, VEL, RATE]
 
@@ -108,7 +107,7 @@ def ned_velocity_curvature(vel_ned_mps: np.ndarray, p: np.ndarray) -> tuple[np.n
     / 2``: each component a quadratic form ``x^T M_i x / 2`` over ``x = (dtheta, xi_v)``,
     so ``E c_i = tr(M_i P) / 2`` and ``Cov(c_i, c_j) = tr(M_i P M_j P) / 2``.
     """
-    return kernels.ned_velocity_curvature(np.asarray(vel_ned_mps, dtype=float), p[_DTHETA_DV_IX])
+    return kernels.ned_velocity_curvature(np.asarray(vel_ned_mps, dtype=float), p)
 
 
 #: Largest curvature ``|v| |dtheta|^2 / 2`` (m/s) of a correction the body-frame velocity

@@ -391,10 +391,15 @@ def reset_rows(
 
 
 @njit(cache=True)
-def ned_velocity_curvature(v: np.ndarray, p6: np.ndarray):
+def ned_velocity_curvature(v: np.ndarray, p_full: np.ndarray):
     """Mean (3,) and covariance (3, 3) of the NED velocity's second-order part under the
     body-frame velocity error (``algebra.ned_velocity_curvature``): ``v`` (3,) the NED
-    velocity, ``p6`` (6, 6) the covariance of ``(dtheta, xi_v)``."""
+    velocity, ``p_full`` (n, n) the error covariance (its ``(dtheta, xi_v)`` block read)."""
+    idx = (_ATT, _ATT + 1, _ATT + 2, _VEL, _VEL + 1, _VEL + 2)
+    p6 = np.empty((6, 6))
+    for a in range(6):
+        for b in range(6):
+            p6[a, b] = p_full[idx[a], idx[b]]
     m = np.zeros((3, 6, 6))
     for i in range(3):
         j, k = (i + 1) % 3, (i + 2) % 3  # eps_ijk = 1, eps_ikj = -1
@@ -406,10 +411,9 @@ def ned_velocity_curvature(v: np.ndarray, p6: np.ndarray):
             m[i, i, a] -= 0.5 * v[a]
             m[i, a, i] -= 0.5 * v[a]
             m[i, a, a] += v[i]
-    p = np.ascontiguousarray(p6)
     mp = np.empty((3, 6, 6))
     for i in range(3):
-        mp[i] = m[i] @ p
+        mp[i] = m[i] @ p6
     mean = np.empty(3)
     for i in range(3):
         mean[i] = 0.5 * np.trace(mp[i])
