@@ -78,6 +78,7 @@ class AlignmentMixin:
             cfg.antenna_b_m,
             GATE_PROBABILITY,
             sensor_axes_b=cfg.layout.axes_b,
+            sensor_positions_b_m=cfg.layout.positions_b_m,
             solve_matrix=self._smat,
             aoa_prior_sigma_rad=float(np.deg2rad(aoa_prior_sigma_deg)),
             aoa_rw_rad_rts=float(np.deg2rad(veh.aoa_walk_deg_rts)),
@@ -177,6 +178,13 @@ class AlignmentMixin:
             jm[1, 0] = -1.0 / G0_MPS2
             j = np.zeros((2, nf.layout.n))
             j[:, nf.layout.bias] = jm @ c0 @ f_of_bias
+            cal_effect = None
+            if nf.layout.n_cal:
+                # the sensing-axis errors read the rest's force too (no forecast loop):
+                # in the levelling and in the biases' means, as a bias does
+                cal_rest = nf.calibration_jacobian(f_b, np.zeros(3), np.zeros(3), False)
+                j[:, nf.layout.cal] = jm @ c0 @ f_of_bias @ cal_rest
+                cal_effect = static_effect @ cal_rest
             p = nf.P
             p[6:8, :] = j @ p
             p[:, 6:8] = p[6:8, :].T
@@ -185,7 +193,9 @@ class AlignmentMixin:
             p[6:8, 8] = 0.0
             p[8, 6:8] = 0.0
             nf.P = p
-            nf.update_static_biases(static_mean, n_avg, static_effect, sample_cov, walk_s)
+            nf.update_static_biases(
+                static_mean, n_avg, static_effect, sample_cov, walk_s, cal_effect
+            )
             nf.check_covariance("static alignment")
         self.last_gps_t = f_t
 
@@ -210,7 +220,7 @@ class AlignmentMixin:
         self._hist = np.empty((window + 1024, 9))
         self._seed_compensation(sa[lo : i_start + 1], ~invalid[lo : i_start + 1])
         self._record()
-        self._with_dr = nf.layout.n_dr > 0
+        self._with_dr = nf.layout.n_dr > 0 or nf.layout.n_cal > 0
         # the fixed-wing's calm-air models (none for a free vehicle)
         calm_air_sigma_deg = CALM_AIR_SIGMA_DEG if cfg.vehicle.fixed_wing else 0.0
         self._slip_sigma = np.deg2rad(calm_air_sigma_deg)

@@ -60,7 +60,8 @@ class ConstraintsMixin:
         current one under a steady load).
         """
         lay = self.layout
-        sg_f = self._lift_sg_f if lay.n_dr and self._lift_sg_f is not None else kernels.ABSENT
+        geo = lay.n_dr or lay.n_cal
+        sg_f = self._lift_sg_f if geo and self._lift_sg_f is not None else kernels.ABSENT
         return kernels.aoa_jacobian(
             lay.n,
             lay.aoa.start,
@@ -75,7 +76,7 @@ class ConstraintsMixin:
             self._bias_effect_f,
             lay.bias.start,
             sg_f,
-            lay.dr.start,
+            lay.geometry.start,
         )
 
     @property
@@ -159,9 +160,9 @@ class ConstraintsMixin:
         along the lift axis ``a``: the angle-of-attack model's R and :attr:`aoa_sigma`
         add it. None: a noise-free load.
 
-        ``sg_f`` (3, 3N), with ``DR`` states: the force rows of the load's sensitivity
-        to the sensor positions (:meth:`geometry_jacobian`'s, weighted as the load's
-        blocks are), whose ``S G dr_hat`` the caller has taken out of ``f_b_mps2`` as the
+        ``sg_f`` (3, nd), with geometry states: the force rows of the load's sensitivity
+        to them (:meth:`geometry_sg`'s, weighted as the load's blocks are), whose share of
+        the estimates (``S G dr_hat``, ...) the caller has taken out of ``f_b_mps2`` as the
         propagation does; the angle of attack's Jacobian carries their errors as it
         carries the biases'. None: the load does not depend on them.
         """

@@ -87,6 +87,10 @@ class NavFilter(
         ``noise.position_sigma_m`` they switch on the ``DR`` states.
     solve_matrix : array (k, N), optional
         The solve operator ``S`` (solved features from channel outputs).
+    sensor_positions_b_m : array (N, 3), optional
+        Nominal sensor positions, FRD, m; with ``solve_matrix`` and
+        ``noise.cal_prior_cov`` they switch on the ``CAL`` states (the load at each
+        sensor is what their error is read through).
     aoa_prior_sigma_rad : float
         > 0 carries the angle of attack as a state (``AOA``) with this prior
         1-sigma, rad; 0 (the default) assumes zero angle of attack.
@@ -189,6 +193,7 @@ class NavFilter(
     rate_measurement: bool = True
     sensor_axes_b: np.ndarray | None = None
     solve_matrix: np.ndarray | None = None
+    sensor_positions_b_m: np.ndarray | None = None
     aoa_prior_sigma_rad: float = 0.0
     aoa_rw_rad_rts: float = 0.0
     aoa_lift_k_m: float = 0.0
@@ -236,6 +241,14 @@ class NavFilter(
             if self.sensor_axes_b is None or self.solve_matrix is None:
                 raise ValueError("position states need sensor_axes_b and solve_matrix")
             n_dr = 3 * self.sensor_axes_b.shape[0]
+        n_cal = 0
+        if self.noise.cal_prior_cov is not None:
+            if self.sensor_positions_b_m is None or self.solve_matrix is None:
+                raise ValueError("calibration states need sensor_positions_b_m and solve_matrix")
+            n_cal = 3 * np.shape(self.sensor_positions_b_m)[0]
+            if np.shape(self.noise.cal_prior_cov) != (n_cal, n_cal):
+                raise ValueError(f"noise.cal_prior_cov must be ({n_cal}, {n_cal})")
+            self.sensor_positions_b_m = np.asarray(self.sensor_positions_b_m, dtype=float)
         for name in (
             "aoa_prior_sigma_rad",
             "aoa_rw_rad_rts",
@@ -249,7 +262,7 @@ class NavFilter(
         n_aoa = int(self.aoa_prior_sigma_rad > 0)
         if n_aoa and self.aoa_lift_k_m > 0 and self.aoa_lift_k_sigma_m > 0:
             n_aoa = 2
-        self.layout = StateLayout(self.quad_pairs.shape[0], n_dr, n_aoa)
+        self.layout = StateLayout(self.quad_pairs.shape[0], n_dr, n_aoa, n_cal)
         n = self.layout.n
         k = 6 + self.layout.nq
         for name in ("feature_cov", "bias_prior_cov", "bias_rw_cov", "bias_effect"):
@@ -280,6 +293,7 @@ class NavFilter(
         self.w = np.zeros(3)
         self.bias = np.zeros(6 + self.layout.nq)
         self.dr = np.zeros(n_dr)
+        self.dg = np.zeros(n_cal)
         self.aoa_b = 0.0
         self.aoa_k = self.aoa_lift_k_m  # the lift law's K estimate, m
         self._lift_u = 0.0  # n_w / V^2 of the last block, 1/m
@@ -353,6 +367,10 @@ class NavFilter(
         dr = self.layout.dr
         p[dr, dr] = np.eye(self.layout.n_dr) * self.noise.position_sigma_m**2
         self.dr = np.zeros(self.layout.n_dr)
+        cal = self.layout.cal
+        if self.layout.n_cal:
+            p[cal, cal] = self.noise.cal_prior_cov
+        self.dg = np.zeros(self.layout.n_cal)
         self.aoa_b = float(aoa_rad) if self.layout.n_aoa else 0.0
         self.aoa_k = self.aoa_lift_k_m
         self._lift_u, self._lift_w = 0.0, 1.0

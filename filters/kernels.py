@@ -509,10 +509,11 @@ def error_dynamics(
     ``c`` (3, 3) ``C_nb``; ``bias_effect_f`` (3, nb) what the biases (from column
     ``bias0``) leave in the force; ``quad_into`` (6, 6) what the rate products' error
     reaches ``[wdot, f]`` through (``quad6_d`` (6, 3, 3) their derivative, ``w`` (3,) the
-    rate), or (0, 0); ``sg`` (k, 3N) the features' sensitivity to the sensor positions
-    (from column ``dr0``), or (0, 0) without, and the rate derivative of what the
-    nominal removes for the positions (``dr`` (3N,), ``axes`` (N, 3), ``solve_t`` (k, N):
-    :func:`geometry_rate_jacobian`).
+    rate), or (0, 0); ``sg`` (k, nd) the features' sensitivity to the geometry states
+    (sensor positions, then sensing axes; from column ``dr0``), or (0, 0) without, and
+    with positions (``axes`` (N, 3), else (0, 0)) the rate derivative of what the nominal
+    removes for them (``dr`` (nd,) the geometry estimates, positions first, ``solve_t``
+    (k, N): :func:`geometry_rate_jacobian`).
     """
     fc = fc_base.copy()
     v, a, r = _VEL, _ATT, _RATE
@@ -533,9 +534,10 @@ def error_dynamics(
         nd = sg.shape[1]
         fc[r : r + 3, dr0 : dr0 + nd] = -sg[0:3]
         fc[v : v + 3, dr0 : dr0 + nd] = -(c @ np.ascontiguousarray(sg[3:6]))
-        gw = geometry_rate_jacobian(w, dr, axes, solve_t)
-        fc[r : r + 3, r : r + 3] -= gw[0:3]
-        fc[v : v + 3, r : r + 3] -= c @ np.ascontiguousarray(gw[3:6])
+        if axes.shape[0]:
+            gw = geometry_rate_jacobian(w, dr, axes, solve_t)
+            fc[r : r + 3, r : r + 3] -= gw[0:3]
+            fc[v : v + 3, r : r + 3] -= c @ np.ascontiguousarray(gw[3:6])
     return fc
 
 
@@ -619,6 +621,31 @@ def geometry_jacobian(
     for r in range(solve_rep.shape[0]):
         for c in range(solve_rep.shape[1]):
             out[r, c] = solve_rep[r, c] * tm[c]
+    return out
+
+
+@njit(cache=True)
+def load_jacobian(
+    f: np.ndarray, wdot: np.ndarray, w: np.ndarray, positions: np.ndarray, solve_rep: np.ndarray
+) -> np.ndarray:
+    """The features' sensitivity (k, 3N) to the sensing-axis errors, ``T S diag(a_i^T)``
+    (``NavFilter.calibration_jacobian``): ``a_i = f + wdot x r_i + w x (w x r_i)`` is the
+    specific force at sensor ``i`` (``positions`` (N, 3))."""
+    n = positions.shape[0]
+    load = np.empty(3 * n)
+    for i in range(n):
+        rx, ry, rz = positions[i, 0], positions[i, 1], positions[i, 2]
+        # w x r, then w x (w x r) and wdot x r
+        ux = w[1] * rz - w[2] * ry
+        uy = w[2] * rx - w[0] * rz
+        uz = w[0] * ry - w[1] * rx
+        load[3 * i] = f[0] + wdot[1] * rz - wdot[2] * ry + w[1] * uz - w[2] * uy
+        load[3 * i + 1] = f[1] + wdot[2] * rx - wdot[0] * rz + w[2] * ux - w[0] * uz
+        load[3 * i + 2] = f[2] + wdot[0] * ry - wdot[1] * rx + w[0] * uy - w[1] * ux
+    out = np.empty_like(solve_rep)
+    for r in range(solve_rep.shape[0]):
+        for c in range(solve_rep.shape[1]):
+            out[r, c] = solve_rep[r, c] * load[c]
     return out
 
 
@@ -750,9 +777,10 @@ def rate_model(
     shrunk); ``h_base`` (nq, n) the Jacobian's constant part; ``quad_d`` (nq, 3, 3) the
     products' derivatives (with the forecast's feedback); ``aided`` (nq, 6) what aided
     products leave in the solved ones (nq, 0 without) with ``quad6_d`` (6, 3, 3) their
-    derivatives; with sensor-position states (``sg`` (k, 3N), else (0, 0)) their columns
-    from ``dr0`` and the rate derivative of what the nominal removes for them at the
-    positions ``dr`` (3N,), sensing axes ``axes`` (N, 3) and solve ``solve_t`` (k, N).
+    derivatives; with geometry states (``sg`` (k, nd), else (0, 0)) their columns from
+    ``dr0`` and, with sensor positions (``axes`` (N, 3), else (0, 0)), the rate derivative
+    of what the nominal removes for them at the estimates ``dr`` (nd,), positions first,
+    and solve ``solve_t`` (k, N).
     """
     pred, w_mean = block_products(w_block, pairs)
     if rate_var.shape[0]:
@@ -765,7 +793,8 @@ def rate_model(
     if sg.shape[0]:
         nd = sg.shape[1]
         h[:, dr0 : dr0 + nd] = sg[6:]
-        hr += geometry_rate_jacobian(w_mean, dr, axes, solve_t)[6:]
+        if axes.shape[0]:
+            hr += geometry_rate_jacobian(w_mean, dr, axes, solve_t)[6:]
     h[:, r : r + 3] = hr
     return pred, h
 

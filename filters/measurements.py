@@ -53,19 +53,18 @@ class MeasurementsMixin:
     def _rate_jacobian_parts(self, sg: np.ndarray | None) -> tuple:
         """What the rate products' Jacobian is built from (``kernels.rate_model``'s
         arguments after the shrink): its constant part, the products' derivatives, the
-        aided products' and, with ``DR`` states, the sensor positions' (``sg``)."""
-        lay = self.layout
-        with_dr = bool(lay.n_dr)
+        aided products' and, with geometry states, theirs (``sg``)."""
+        sg, dr0, geo, axes, solve_t = self._geometry_args(sg)
         return (
             self._h_rate_base,
             self._quad_d,
             self._aided_rate_cols,
             self._quad6_d,
-            sg if with_dr else kernels.ABSENT,
-            self.dr,
-            self.sensor_axes_b if with_dr else kernels.ABSENT,
-            self._solve_t if with_dr else kernels.ABSENT,
-            lay.dr.start,
+            sg,
+            geo,
+            axes,
+            solve_t,
+            dr0,
         )
 
     def measure_rate(
@@ -166,6 +165,7 @@ class MeasurementsMixin:
         effect: np.ndarray | None = None,
         sample_cov: np.ndarray | None = None,
         walk_s: float = 0.0,
+        cal_effect: np.ndarray | None = None,
     ) -> Measurement:
         """The static alignment's measurement of the biases (:meth:`update_static_biases`).
 
@@ -188,6 +188,10 @@ class MeasurementsMixin:
         propagation's, mapped through the loop (``T``), about 13 % smaller in variance
         on the angular acceleration with ``uav-survey``'s 6 mm outward offset.
 
+        ``cal_effect`` (k, 3N), with ``CAL`` states: what the sensing-axis errors leave in
+        ``mean_features`` at rest (their sensitivity at the rest's force, through
+        ``effect``).
+
         ``walk_s`` (s, >= 0, default 0) weights the biases' random walk: the states
         are the biases at the mean's last sample, which differ from their mean over
         the span by a walk of covariance ``noise.bias_rw_cov * walk_s``, read through
@@ -204,6 +208,8 @@ class MeasurementsMixin:
             raise ValueError(f"effect must be ({k}, {k}), got {m.shape}")
         h = np.zeros((idx.size, self.layout.n))
         h[:, self.layout.bias] = m[idx]
+        if cal_effect is not None:
+            h[:, self.layout.cal] = np.asarray(cal_effect, dtype=float)[idx]
         if sample_cov is None:
             r = self.noise.feature_cov[np.ix_(idx, idx)] / max(int(n_samples), 1)
         else:
@@ -211,7 +217,10 @@ class MeasurementsMixin:
             r = mi @ np.asarray(sample_cov, dtype=float) @ mi.T / max(int(n_samples), 1)
         if walk_s > 0.0:
             r = r + m[idx] @ self.noise.bias_rw_cov @ m[idx].T * walk_s
-        return Measurement(mean_features[idx] - m[idx] @ self.bias, h, r)
+        z = mean_features[idx] - m[idx] @ self.bias
+        if cal_effect is not None:
+            z = z - np.asarray(cal_effect, dtype=float)[idx] @ self.dg
+        return Measurement(z, h, r)
 
     def update_static_biases(
         self,
@@ -220,10 +229,13 @@ class MeasurementsMixin:
         effect: np.ndarray | None = None,
         sample_cov: np.ndarray | None = None,
         walk_s: float = 0.0,
+        cal_effect: np.ndarray | None = None,
     ) -> None:
         """Static alignment: fuse :meth:`measure_static_biases` (ungated: the rest is known)."""
         self._apply(
-            self.measure_static_biases(mean_features, n_samples, effect, sample_cov, walk_s)
+            self.measure_static_biases(
+                mean_features, n_samples, effect, sample_cov, walk_s, cal_effect
+            )
         )
 
     def gps_model(

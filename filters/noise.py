@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ngnav.mounting import perpendicular_basis
 from ngnav.runconfig import RunConfig
 
 
@@ -71,6 +72,7 @@ class FilterNoise:
     quad_cross_cov: np.ndarray | None = None
     bias_effect: np.ndarray | None = None
     block_wdot_cov: np.ndarray | None = None
+    cal_prior_cov: np.ndarray | None = None
 
 
 def filter_noise(
@@ -144,6 +146,7 @@ def filter_noise(
         feature_cov[6:, 6:] = raw_qq
         bias_effect = t
     return FilterNoise(
+        cal_prior_cov=calibration_prior_cov(cfg) if cfg.carries_calibration_error else None,
         feature_cov=feature_cov,
         bias_prior_cov=bias_prior_cov,
         bias_rw_cov=bias_rw_cov,
@@ -152,3 +155,29 @@ def filter_noise(
         bias_effect=bias_effect,
         block_wdot_cov=block_wdot_cov,
     )
+
+
+def calibration_prior_cov(cfg: RunConfig) -> np.ndarray:
+    """Prior covariance (3N, 3N) of the calibration's residual sensing-axis errors ``dg``.
+
+    Channel ``i`` reads ``(theta_i + dg_i) . a_i`` where the filter assumes
+    ``theta_i . a_i`` (``a_i`` the specific force at the sensor): ``dg_i`` is the scale's
+    residual along the axis plus the two axis angles' across it,
+    ``s_i^2 theta theta^T + a_i1^2 e1 e1^T + a_i2^2 e2 e2^T`` with ``e1, e2`` of
+    :func:`ngnav.mounting.perpendicular_basis`. A zero sigma is floored at 1e-9 (a
+    constant known exactly would leave the covariance singular).
+    """
+    axes = np.asarray(cfg.layout.axes_b, dtype=float)
+    e1, e2 = perpendicular_basis(axes)
+    ss = np.maximum(cfg.scale_sigma, 1e-9) ** 2
+    sa = np.maximum(cfg.axis_error_sigma_rad, 1e-9) ** 2
+    n = axes.shape[0]
+    cov = np.zeros((3 * n, 3 * n))
+    for i in range(n):
+        blk = slice(3 * i, 3 * i + 3)
+        cov[blk, blk] = (
+            ss[i] * np.outer(axes[i], axes[i])
+            + sa[i, 0] * np.outer(e1[i], e1[i])
+            + sa[i, 1] * np.outer(e2[i], e2[i])
+        )
+    return cov

@@ -174,6 +174,7 @@ class NominalMixin:
         self.w = self.w + dx[RATE]
         self.bias = self.bias + dx[self.layout.bias]
         self.dr = self.dr + dx[self.layout.dr]
+        self.dg = self.dg + dx[self.layout.cal]
         if self.layout.n_aoa:
             da = dx[self.layout.aoa]
             self.aoa_b += float(da[0])

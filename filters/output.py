@@ -225,7 +225,8 @@ def write_estimates_npz(path: str | Path, res: RunResult) -> None:
     NED attitude rad, rate rad/s, with their correlations), ``aoa_rad`` and
     ``aoa_sigma_rad`` (E,) when carried; ``faulty_channels`` and ``valid`` (E,) when kept; the last
     epoch's ``final_cov`` (n, n) in the order of ``final_blocks`` (names) and
-    ``final_dofs``, with ``final_dr_m`` and ``final_aoa_states`` when carried;
+    ``final_dofs``, with ``final_dr_m``, ``final_axis_error_b`` and ``final_aoa_states``
+    when carried;
     ``version``. Read it with :func:`read_estimates_npz`.
     """
     est = res.estimates
@@ -251,7 +252,11 @@ def write_estimates_npz(path: str | Path, res: RunResult) -> None:
         arrays["final_cov"] = fin.cov
         arrays["final_blocks"] = np.array([name for name, _ in fin.state_blocks])
         arrays["final_dofs"] = np.array([dof for _, dof in fin.state_blocks])
-        for key, value in (("final_dr_m", fin.dr_m), ("final_aoa_states", fin.aoa_states)):
+        for key, value in (
+            ("final_dr_m", fin.dr_m),
+            ("final_axis_error_b", fin.axis_error_b),
+            ("final_aoa_states", fin.aoa_states),
+        ):
             if value is not None:
                 arrays[key] = value
     np.savez_compressed(Path(path), **arrays)
@@ -301,6 +306,7 @@ def read_estimates_npz(path: str | Path) -> tuple[Estimates, NavEstimate | None]
         aoa_sigma_rad=None if aoa is None else aoa[1],
         state_blocks=blocks,
         dr_m=get.get("final_dr_m"),
+        axis_error_b=get.get("final_axis_error_b"),
         aoa_states=get.get("final_aoa_states"),
     )
     return est, final

@@ -324,7 +324,7 @@ class Pipeline(
                 c.rate_rejected,
                 self.block_faulty,
                 lay,
-                nf.dr if lay.n_dr else None,
+                (nf.dr if lay.n_dr else None, nf.dg if lay.n_cal else None),
                 (nf.aoa_b, nf.aoa_k)[: lay.n_aoa],
                 valid,
             ),
@@ -338,7 +338,7 @@ class Pipeline(
         (a run without an ``on_epoch`` reader builds only the last one)."""
         if self._latest is None and self._latest_args is not None:
             args, extra = self._latest_args
-            gps, t_fix, resets, y, nis, gate, fb, fbs, held, rej, faulty, lay, dr, aoa, ok = extra
+            gps, t_fix, resets, y, nis, gate, fb, fbs, held, rej, faulty, lay, geo, aoa, ok = extra
             self._latest = NavEstimate(
                 *args,
                 last_gps=gps,
@@ -353,7 +353,8 @@ class Pipeline(
                 rate_updates_rejected=rej,
                 faulty_channels=faulty,
                 state_blocks=self._state_blocks(lay),
-                dr_m=dr,
+                dr_m=geo[0],
+                axis_error_b=geo[1],
                 aoa_states=np.array(aoa) if aoa else None,
                 valid=ok,
             )

@@ -82,8 +82,8 @@ class ProcessMixin:
             ``C_nb`` at the block start.
         f_n : array (3,)
             Mean specific force over the block, NED, m/s^2.
-        sg : array (k, 3N), optional
-            Feature sensitivity to the sensor positions (with ``DR`` states).
+        sg : array (k, nd), optional
+            Feature sensitivity to the geometry states (``DR``, ``CAL``; :meth:`geometry_sg`).
         """
         t = k * dt
         # a rate error reaches wdot and f through what the features hold of the rate
@@ -91,7 +91,7 @@ class ProcessMixin:
         # A_m q(w_hat)); with sensor-position states the removed S G(w_hat) dr_hat is off
         # by its rate derivative times the rate error
         quad_into = self._quad_into_features
-        with_dr = bool(self.layout.n_dr)
+        geo = self._geometry_args(sg)
         return kernels.propagation_matrices(
             self._fc_base,
             f_n,
@@ -101,11 +101,7 @@ class ProcessMixin:
             kernels.ABSENT if quad_into is None else quad_into,
             self._quad6_d,
             self.w,
-            sg if with_dr else kernels.ABSENT,
-            self.layout.dr.start,
-            self.dr,
-            self.sensor_axes_b if with_dr else kernels.ABSENT,
-            self._solve_t if with_dr else kernels.ABSENT,
+            *geo,
             t,
             self._q12_body(k, dt),
             self._q_walks(t),
@@ -237,13 +233,72 @@ class ProcessMixin:
             np.asarray(omega_b_rps, dtype=float), self.dr, self.sensor_axes_b, self._solve_t
         )
 
+    def calibration_jacobian(
+        self,
+        f_b_mps2: np.ndarray,
+        wdot_b_rps2: np.ndarray,
+        omega_b_rps: np.ndarray,
+        through_loop: bool = True,
+    ) -> np.ndarray:
+        """Sensitivity (k, 3N) of the compensated features to the sensing-axis errors.
+
+        A sensing axis off by ``dg_i`` reads ``dg_i . a_i`` more, ``a_i`` the specific
+        force at the sensor (:func:`filters.kernels.load_jacobian`); through the solve and,
+        as for the positions (:meth:`geometry_jacobian`), the forecast's loop: ``T S``
+        (``through_loop`` False: ``S``, for a mean with no forecast, the static one).
+        """
+        rep = self._solve_rep if through_loop else np.repeat(self.solve_matrix, 3, axis=1)
+        return kernels.load_jacobian(
+            np.asarray(f_b_mps2, dtype=float),
+            np.asarray(wdot_b_rps2, dtype=float),
+            np.asarray(omega_b_rps, dtype=float),
+            self.sensor_positions_b_m,
+            np.ascontiguousarray(rep, dtype=float),
+        )
+
+    def geometry_sg(
+        self, f_b_mps2: np.ndarray, wdot_b_rps2: np.ndarray, omega_b_rps: np.ndarray
+    ) -> np.ndarray | None:
+        """The features' sensitivity (k, nd) to the geometry states, in their order
+        (positions, then sensing axes), at the block's motion; None without them."""
+        lay = self.layout
+        parts = []
+        if lay.n_dr:
+            parts.append(self.geometry_jacobian(wdot_b_rps2, omega_b_rps))
+        if lay.n_cal:
+            parts.append(self.calibration_jacobian(f_b_mps2, wdot_b_rps2, omega_b_rps))
+        if not parts:
+            return None
+        return parts[0] if len(parts) == 1 else np.hstack(parts)
+
+    def geometry_estimates(self) -> np.ndarray:
+        """The geometry states' estimates (nd,): ``dr_hat`` then ``dg_hat``."""
+        if not self.layout.n_cal:
+            return self.dr
+        return np.concatenate([self.dr, self.dg]) if self.layout.n_dr else self.dg
+
+    def _geometry_args(self, sg: np.ndarray | None) -> tuple:
+        """The kernels' geometry arguments: ``sg``, its first column, the estimates, and
+        with positions the sensing axes and ``T S`` (their rate derivative)."""
+        lay = self.layout
+        with_geo = bool(lay.n_dr or lay.n_cal)
+        with_dr = bool(lay.n_dr)
+        return (
+            sg if with_geo else kernels.ABSENT,
+            lay.geometry.start,
+            self.geometry_estimates(),
+            self.sensor_axes_b if with_dr else kernels.ABSENT,
+            self._solve_t if with_dr else kernels.ABSENT,
+        )
+
     def _feature_offset(self, sg: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """What the nominal removes from ``wdot`` and ``f``: biases plus ``S G dr_hat``."""
+        """What the nominal removes from ``wdot`` and ``f``: biases plus ``sg``'s share of
+        the geometry estimates (``T S G dr_hat`` and ``T S diag(a^T) dg_hat``)."""
         bw, bf = self.bias[0:3], self.bias[3:6]
-        if self.layout.n_dr:
+        if self.layout.n_dr or self.layout.n_cal:
             if sg is None:
-                raise ValueError("a filter with position states needs the block's sg")
-            off = sg[0:6] @ self.dr
+                raise ValueError("a filter with geometry states needs the block's sg")
+            off = sg[0:6] @ self.geometry_estimates()
             bw, bf = bw + off[0:3], bf + off[3:6]
         return bw, bf
 

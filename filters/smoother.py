@@ -167,9 +167,9 @@ class SmootherLog:
 
     @staticmethod
     def nominal(nf) -> np.ndarray:
-        """The filter's nominal state as one vector (pos, vel, q, w, bias, dr, aoa)."""
+        """The filter's nominal state as one vector (pos, vel, q, w, bias, dr, dg, aoa)."""
         aoa = [nf.aoa_b, nf.aoa_k][: nf.layout.n_aoa]
-        return np.concatenate([nf.pos, nf.vel, nf.q, nf.w, nf.bias, nf.dr, aoa])
+        return np.concatenate([nf.pos, nf.vel, nf.q, nf.w, nf.bias, nf.dr, nf.dg, aoa])
 
     def posterior(self, nf) -> None:
         """Store the filter's state now: the end of one block and the start of the next."""

@@ -13,6 +13,8 @@ B_WDOT     3      bias of the solved angular acceleration, FRD, rad/s^2
 B_F        3      bias of the solved specific force, FRD, m/s^2
 B_QUAD     nq     bias of the solved rate-quadratic terms, rad^2/s^2
 DR         3N     residual sensor-position errors ``dr_i``, FRD, m (optional)
+CAL        3N     residual sensing-axis errors ``dg_i`` (scale along the axis,
+                  angles across it), FRD, dimensionless (optional)
 AOA        1-2    angle-of-attack error, rad; with a lift law the law's offset
                   error (rad) and its ``K`` error (m) (optional)
 =========  =====  ==============================================================
@@ -48,6 +50,16 @@ block is present whenever the configuration declares a position uncertainty
 (``position_sigma_m`` > 0): a declared uncertainty is never dropped. Where the
 motion keeps the scatter's channel error far below the noise (``ngnav simulate``
 prints both; ``uav-survey``) the states learn little and stay near their prior.
+
+Why ``CAL``: the bench calibration fits each channel's scale and axis angles from
+static poses; what its fit leaves (a few ppm and microradians after 20 000 samples a
+pose) makes the channel read ``dg_i . a_i`` more, ``a_i`` the specific force at the
+sensor. That follows the load: at a projectile's 24 g boost about 100 ug per channel,
+fifty times the bias walk over the boost, and back as the load falls, which no bias
+walk describes (over-sure attitude after the boost; docs/notes/filter-notes.md, "a
+spinning projectile"). Carried as states they are exact, read like ``DR`` through
+the features' sensitivity ``T S diag(a_i^T)``. Present when the calibration declares
+``scale_sigma`` or ``axis_error_sigma_rad``.
 
 Why ``AOA``: an aircraft's velocity leaves its body x axis by the angle of
 attack, which its lift needs: it grows with load factor and falls with speed.
@@ -105,7 +117,8 @@ def b_quad(nq: int) -> slice:
 @dataclass(frozen=True)
 class StateLayout:
     """The error state of one filter: the fixed blocks, then ``nq`` rate-quadratic
-    biases, ``n_dr`` sensor-position states and ``n_aoa`` (0-2) angle-of-attack states.
+    biases, ``n_dr`` sensor-position states, ``n_cal`` sensing-axis states and ``n_aoa``
+    (0-2) angle-of-attack states.
 
     Every slice comes from :attr:`blocks`, the one ordered declaration.
     """
@@ -113,6 +126,7 @@ class StateLayout:
     nq: int
     n_dr: int = 0
     n_aoa: int = 0
+    n_cal: int = 0
     _slices: dict[str, slice] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -123,7 +137,13 @@ class StateLayout:
     @property
     def blocks(self) -> tuple[tuple[str, int], ...]:
         """The ordered ``(name, dof)`` blocks of this layout."""
-        return (*FIXED_BLOCKS, ("b_quad", self.nq), ("dr", self.n_dr), ("aoa", self.n_aoa))
+        return (
+            *FIXED_BLOCKS,
+            ("b_quad", self.nq),
+            ("dr", self.n_dr),
+            ("cal", self.n_cal),
+            ("aoa", self.n_aoa),
+        )
 
     @property
     def n(self) -> int:
@@ -134,6 +154,16 @@ class StateLayout:
     def dr(self) -> slice:
         """The sensor-position error block (3N or empty)."""
         return self._slices["dr"]
+
+    @property
+    def cal(self) -> slice:
+        """The calibration's residual sensing-axis errors ``dg_i`` (3N or empty)."""
+        return self._slices["cal"]
+
+    @property
+    def geometry(self) -> slice:
+        """``DR`` and ``CAL`` together: the states the features read through ``sg``."""
+        return slice(self._slices["dr"].start, self._slices["cal"].stop)
 
     @property
     def aoa(self) -> slice:

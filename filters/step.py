@@ -84,13 +84,18 @@ class StepMixin:
             # noise: on uav-survey that noise (0.013 rad/s^2) outweighs the rate terms
             # (|w|^2 0.008 rad^2/s^2), and read as motion it made the 27 states and the
             # attitude over-sure (docs/design.md, "the sensor positions' Jacobian").
+            # The sensing-axis states read the specific force at each sensor, from the
+            # same forecast (the last block's mean less the biases without one).
             wd_sg = self._wd_smooth if phi_hat is None else phi_hat[0:3]
             wd_sg = shrink_to_size(wd_sg, self.wdot_jacobian_var * (1.0 / kk))
-            sg = nf.geometry_jacobian(wd_sg, nf.w + 0.5 * kk * dt * wd_sg)
+            f_sg = self._last_mean[3:6] - nf.bias[3:6] if phi_hat is None else phi_hat[3:6]
+            sg = nf.geometry_sg(f_sg, wd_sg, nf.w + 0.5 * kk * dt * wd_sg)
             if p_bound is not None:
                 blk = slice(i0 + 1, i1 + 1)
-                sg_true = nf.geometry_jacobian(
-                    truth.omega_dot_b_rps2[blk].mean(axis=0), truth.omega_b_rps[blk].mean(axis=0)
+                sg_true = nf.geometry_sg(
+                    truth.f_b_mps2[blk].mean(axis=0),
+                    truth.omega_dot_b_rps2[blk].mean(axis=0),
+                    truth.omega_b_rps[blk].mean(axis=0),
                 )
         rest = self.rest
         if rest is not None:
@@ -200,7 +205,7 @@ class StepMixin:
             sg_f = None
             if sg is not None:
                 sg_f = sg[3:6]
-                f_mean = f_mean - sg_f @ nf.dr
+                f_mean = f_mean - sg_f @ nf.geometry_estimates()
             k_now = n_ok if 0 < n_ok < kk else kk  # the rows in the mean
             if self._f_load_prev is None:
                 f_load, w2, sg_load = f_mean, 1.0 / k_now, sg_f

@@ -261,6 +261,10 @@ class NavEstimate:
     dr_m : array (3N,) or None
         Estimated sensor-position errors ``dr_i`` (FRD, m; sensor ``i`` at
         ``3 i : 3 i + 3``) when the filter carries them (block ``dr``).
+    axis_error_b : array (3N,) or None
+        Estimated residual errors ``dg_i`` of the calibrated sensing axes (FRD,
+        dimensionless: the scale's along the axis, the angles' across it; sensor ``i``
+        at ``3 i : 3 i + 3``) when the filter carries them (block ``cal``).
     valid : bool
         False after the filter started again from a lost track until its attitude's
         1-sigma is back (:mod:`filters.recovery`).
@@ -294,6 +298,7 @@ class NavEstimate:
     dr_m: np.ndarray | None = None
     aoa_states: np.ndarray | None = None
     valid: bool = True
+    axis_error_b: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = sum(dof for _, dof in self.state_blocks)
@@ -304,7 +309,7 @@ class NavEstimate:
         for name, tail in (("bound_nav", (N_NAV, N_NAV)), ("rate_innovation", ())):
             if getattr(self, name) is not None:
                 shapes[name] = tail
-        for name in ("dr_m", "aoa_states"):
+        for name in ("dr_m", "aoa_states", "axis_error_b"):
             if getattr(self, name) is not None:
                 shapes[name] = ()
         freeze_fields(self, shapes)

@@ -17,6 +17,10 @@ truth to separate files.
                    offset_mps2 = [...]                # N, zero offset, m/s^2
                    position_sigma_m = x               # 1-sigma of the unknown position
                                                       # error per axis (default 0)
+                   scale_sigma = [...] or x           # N, 1-sigma of scale (default 0)
+                   axis_error_sigma_rad = [[..]] or x # N x 2, 1-sigma of the axis angles
+                                                      # (default 0); either > 0: the
+                                                      # filter carries their effect
     [sensor]       noise_sigma_mps2 = [...] or x      # per sample, m/s^2
                    turn_on_bias_mps2 = [...] or x     # 1-sigma, m/s^2
                    bias_rw_mps2_rts = [...] or x      # m/s^2 per root s
@@ -118,6 +122,8 @@ class RunConfig:
     alt0_m: float
     antenna_b_m: np.ndarray
     position_sigma_m: float = 0.0
+    scale_sigma: np.ndarray | float = 0.0
+    axis_error_sigma_rad: np.ndarray | float = 0.0
     initial: InitialSettings = field(default_factory=InitialSettings)
     filter: FilterSettings = field(default_factory=FilterSettings)
     compensation: CompensationSettings = field(default_factory=CompensationSettings)
@@ -132,12 +138,27 @@ class RunConfig:
             "noise_sigma_mps2",
             "turn_on_bias_mps2",
             "bias_rw_mps2_rts",
+            "scale_sigma",
         ):
             a = np.broadcast_to(np.asarray(getattr(self, name), dtype=float), (n,)).copy()
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"config: {name} must be finite")
             a.setflags(write=False)
             object.__setattr__(self, name, a)
+        sa = np.asarray(self.axis_error_sigma_rad, dtype=float)
+        if sa.ndim == 1 and sa.shape == (n,):
+            sa = sa[:, None]
+        try:
+            sa = np.broadcast_to(sa, (n, 2)).copy()
+        except ValueError:
+            raise ValueError(
+                f"config: calibration.axis_error_sigma_rad must be one number or {n} x 2, "
+                f"got shape {sa.shape}"
+            ) from None
+        if not np.all(np.isfinite(sa)) or np.any(sa < 0) or np.any(self.scale_sigma < 0):
+            raise ValueError("config: calibration sigmas must be finite and >= 0")
+        sa.setflags(write=False)
+        object.__setattr__(self, "axis_error_sigma_rad", sa)
         if np.any(self.noise_sigma_mps2 <= 0):
             raise ValueError("config: sensor.noise_sigma_mps2 must be positive")
         if np.any(self.scale <= 0):
@@ -156,6 +177,12 @@ class RunConfig:
             )
         if self.initial.heading_source not in ("config", "gps"):
             raise ValueError("config: initial.heading_source must be config or gps")
+
+    @property
+    def carries_calibration_error(self) -> bool:
+        """Whether the calibration declares a scale or axis 1-sigma (the filter then
+        carries the residual's effect, :class:`filters.state.StateLayout` ``cal``)."""
+        return bool(np.any(self.scale_sigma > 0) or np.any(self.axis_error_sigma_rad > 0))
 
 
 def _matrix(table: dict, key: str, shape: tuple[int | None, int], where: str) -> np.ndarray:
@@ -185,6 +212,21 @@ def _vector(table: dict, key: str, n: int, where: str, default: Any = None) -> n
         return np.full(n, float(a))
     if a.shape != (n,):
         raise ValueError(f"{where}: {key} must have {n} values, got {a.shape[0]}")
+    return a
+
+
+def _sigmas2(table: dict, key: str, n: int, where: str) -> np.ndarray:
+    """An N x 2 table of 1-sigmas, or one number for all (default 0)."""
+    if key not in table:
+        return np.zeros((n, 2))
+    try:
+        a = np.asarray(table[key], dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: {key} must be a number or {n} x 2 numbers") from None
+    if a.ndim == 0:
+        return np.full((n, 2), float(a))
+    if a.shape != (n, 2):
+        raise ValueError(f"{where}: {key} must have shape ({n}, 2), got {a.shape}")
     return a
 
 
@@ -249,6 +291,8 @@ def read_run_config_text(text: str, where: str) -> RunConfig:
             alt0_m=ref_vals[2],
             antenna_b_m=np.asarray(gps.get("antenna_b_m", [0.0, 0.0, 0.0]), dtype=float),
             position_sigma_m=float(cal.get("position_sigma_m", 0.0)),
+            scale_sigma=_vector(cal, "scale_sigma", n, f"{p} [calibration]", 0.0),
+            axis_error_sigma_rad=_sigmas2(cal, "axis_error_sigma_rad", n, f"{p} [calibration]"),
             initial=_settings(InitialSettings, data.get("initial"), "initial"),
             filter=_settings(FilterSettings, data.get("filter"), "filter"),
             compensation=_settings(CompensationSettings, data.get("compensation"), "compensation"),
@@ -311,6 +355,9 @@ def run_config_text(cfg: RunConfig) -> str:
         "vehicle": asdict(cfg.vehicle),
         "rest": asdict(cfg.rest),
     }
+    if cfg.carries_calibration_error:
+        sections["calibration"]["scale_sigma"] = cfg.scale_sigma
+        sections["calibration"]["axis_error_sigma_rad"] = cfg.axis_error_sigma_rad
     if cfg.layout.lever_arm_m is not None:
         sections["array"]["lever_arm_m"] = float(cfg.layout.lever_arm_m)
     for name, table in sections.items():

@@ -97,6 +97,7 @@ def _channel_config(corrected: bool):
         turn_on_bias_mps2=np.full(9, 0.0098),
         bias_rw_mps2_rts=np.full(9, 1e-5),
         position_sigma_m=0.0,
+        carries_calibration_error=False,
         compensation=SimpleNamespace(forecast_correction=corrected),
     )
 

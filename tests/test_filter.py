@@ -718,6 +718,8 @@ def test_a_layout_without_the_rate_products_is_refused_naming_them(tactical):
         offset_mps2=np.zeros(6),
         noise_sigma_mps2=tactical.config.noise_sigma_mps2[:6],
         turn_on_bias_mps2=tactical.config.turn_on_bias_mps2[:6],
+        scale_sigma=0.0,
+        axis_error_sigma_rad=0.0,
         bias_rw_mps2_rts=tactical.config.bias_rw_mps2_rts[:6],
     )
     samples = ArraySamples(tactical.samples.t_s, tactical.samples.accel_mps2[:, :6])

@@ -36,6 +36,7 @@ def _fake(n: int) -> LinearFilter:
     nf = LinearFilter(
         layout=LAYOUT,
         dr=np.zeros(0),
+        dg=np.zeros(0),
         aoa_b=0.0,
         aoa_k=0.0,
         t_s=0.0,

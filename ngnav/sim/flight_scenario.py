@@ -72,6 +72,10 @@ class FlightMountingConfig:
     position_scatter_m: float = 0.0005
     axis_error_deg: float = 0.5
     calibration_samples: int = 2000
+    #: Declare the bench calibration's scale and axis 1-sigmas in ``config.toml`` (the
+    #: filter then carries their residual as states): what a vehicle whose load reaches
+    #: tens of g needs; at a few g their effect is below the bias walk.
+    declare_calibration_sigmas: bool = False
 
 
 @dataclass(frozen=True)

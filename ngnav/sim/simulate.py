@@ -240,6 +240,8 @@ def simulate_flight(
         alt0_m=scn.reference.alt_m,
         antenna_b_m=np.asarray(g.antenna_b_m),
         position_sigma_m=m.position_scatter_m,
+        scale_sigma=cal.scale_sigma if m.declare_calibration_sigmas else 0.0,
+        axis_error_sigma_rad=cal.axis_error_sigma_rad if m.declare_calibration_sigmas else 0.0,
         initial=initial,
         filter=scn.filter,
         compensation=scn.compensation,
