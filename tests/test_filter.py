@@ -283,6 +283,9 @@ def test_simulate_then_run_cli(tmp_path):
     # the unknown positions' channel error beside the noise, and whether states model it
     assert "unknown sensor positions (0.5 mm 1-sigma): channel error" in sim.stdout
     assert "filter position states on" in sim.stdout
+    # the calibration's residual beside the bias walk: tactical's few g leave it below
+    assert "the calibration's scale and axis residual: channel error moves by" in sim.stdout
+    assert "filter axis states off" in sim.stdout
     for f in ("array.csv", "gps.csv", "config.toml", "truth.csv"):
         assert (d / f).is_file()
     out = subprocess.run([*run, "run", str(d)], capture_output=True, text=True, cwd=ROOT)

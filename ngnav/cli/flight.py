@@ -98,6 +98,15 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         f"beside {noise:.0f} ug of noise per sample; filter position states "
         f"{'on' if sim.config.position_sigma_m > 0 else 'off'}"
     )
+    e_cal = sim.calibration_residual_error_mps2() / G0_MPS2 * 1e6
+    walk = float(np.median(sim.config.bias_rw_mps2_rts)) / G0_MPS2 * 1e6
+    walk *= np.sqrt(sim.truth.t_s[-1] - sim.truth.t_s[0])
+    print(
+        f"the calibration's scale and axis residual: channel error moves by "
+        f"{np.abs(e_cal).max():.1f} ug at most with the load, beside a bias walk of "
+        f"{walk:.1f} ug over the flight; filter axis states "
+        f"{'on' if sim.config.carries_calibration_error else 'off'}"
+    )
     if args.stream is not None:
         from telemetry.inputs import input_frames
         from telemetry.live import parse_endpoint, play_frames

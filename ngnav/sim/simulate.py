@@ -92,6 +92,27 @@ class SimulatedRun:
             out[:, i] = lever @ axes[i]
         return out
 
+    def calibration_residual_error_mps2(self) -> np.ndarray:
+        """Channel errors (T, N), m/s^2, that the bench calibration's scale and axis
+        residual causes, less their value at the first sample (what a bias holds).
+
+        ``dg_i . a_i``: ``dg_i`` the real sensing axis times the real over the calibrated
+        scale, less the calibrated axis (the filter's ``CAL`` states, when declared), and
+        ``a_i`` the truth's specific force at the sensor.
+        """
+        cfg = self.config
+        nominal = cfg.layout
+        dg = (self.true_scale / cfg.scale)[:, None] * self.true_errors.real_axes(
+            nominal
+        ) - cfg.known_errors.real_axes(nominal)
+        tr = self.truth
+        out = np.empty((tr.omega_b_rps.shape[0], dg.shape[0]))
+        for i, r in enumerate(cfg.known_errors.real_layout(nominal).positions_b_m):
+            load = tr.f_b_mps2 + np.cross(tr.omega_dot_b_rps2, r)
+            load += np.cross(tr.omega_b_rps, np.cross(tr.omega_b_rps, r))
+            out[:, i] = load @ dg[i]
+        return out - out[0]
+
 
 def bench_calibration(
     spec: AccelerometerSpec,
