@@ -220,7 +220,7 @@ class AlignmentMixin:
         self._hist = np.empty((window + 1024, 9))
         self._seed_compensation(sa[lo : i_start + 1], ~invalid[lo : i_start + 1])
         self._record()
-        self._with_dr = nf.layout.n_dr > 0 or nf.layout.n_cal > 0
+        self._with_geo = nf.layout.n_dr > 0 or nf.layout.n_cal > 0
         # the fixed-wing's calm-air models (none for a free vehicle)
         calm_air_sigma_deg = CALM_AIR_SIGMA_DEG if cfg.vehicle.fixed_wing else 0.0
         self._slip_sigma = np.deg2rad(calm_air_sigma_deg)

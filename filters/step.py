@@ -76,7 +76,7 @@ class StepMixin:
             self.block_faulty |= int(np.bitwise_or.reduce(self._chmask[i0 + 1 - b : i1 + 1 - b]))
         n_ok = kk - n_bad
         sg = sg_true = None
-        if self._with_dr:
+        if self._with_geo:
             # The sensor-position states see the block's angular acceleration as
             # forecast from the *previous* blocks (the compensation's forecast, or a
             # smoothed history without one): this block's own noise would correlate
