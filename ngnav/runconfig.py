@@ -145,16 +145,22 @@ class RunConfig:
                 raise ValueError(f"config: {name} must be finite")
             a.setflags(write=False)
             object.__setattr__(self, name, a)
-        sa = np.asarray(self.axis_error_sigma_rad, dtype=float)
-        if sa.ndim == 1 and sa.shape == (n,):
-            sa = sa[:, None]
         try:
-            sa = np.broadcast_to(sa, (n, 2)).copy()
-        except ValueError:
+            sa = np.asarray(self.axis_error_sigma_rad, dtype=float)
+        except (TypeError, ValueError):
             raise ValueError(
-                f"config: calibration.axis_error_sigma_rad must be one number or {n} x 2, "
-                f"got shape {sa.shape}"
+                f"config: calibration.axis_error_sigma_rad must be numbers, "
+                f"got {self.axis_error_sigma_rad!r}"
             ) from None
+        if sa.ndim:
+            if sa.shape != (n, 2):
+                raise ValueError(
+                    f"config: calibration.axis_error_sigma_rad must have shape ({n}, 2) or be "
+                    f"one number, got {sa.shape}"
+                )
+            sa = sa.copy()
+        else:
+            sa = np.full((n, 2), float(sa))
         if not np.all(np.isfinite(sa)) or np.any(sa < 0) or np.any(self.scale_sigma < 0):
             raise ValueError("config: calibration sigmas must be finite and >= 0")
         sa.setflags(write=False)
@@ -212,21 +218,6 @@ def _vector(table: dict, key: str, n: int, where: str, default: Any = None) -> n
         return np.full(n, float(a))
     if a.shape != (n,):
         raise ValueError(f"{where}: {key} must have {n} values, got {a.shape[0]}")
-    return a
-
-
-def _sigmas2(table: dict, key: str, n: int, where: str) -> np.ndarray:
-    """An N x 2 table of 1-sigmas, or one number for all (default 0)."""
-    if key not in table:
-        return np.zeros((n, 2))
-    try:
-        a = np.asarray(table[key], dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{where}: {key} must be a number or {n} x 2 numbers") from None
-    if a.ndim == 0:
-        return np.full((n, 2), float(a))
-    if a.shape != (n, 2):
-        raise ValueError(f"{where}: {key} must have shape ({n}, 2), got {a.shape}")
     return a
 
 
@@ -292,7 +283,7 @@ def read_run_config_text(text: str, where: str) -> RunConfig:
             antenna_b_m=np.asarray(gps.get("antenna_b_m", [0.0, 0.0, 0.0]), dtype=float),
             position_sigma_m=float(cal.get("position_sigma_m", 0.0)),
             scale_sigma=_vector(cal, "scale_sigma", n, f"{p} [calibration]", 0.0),
-            axis_error_sigma_rad=_sigmas2(cal, "axis_error_sigma_rad", n, f"{p} [calibration]"),
+            axis_error_sigma_rad=cal.get("axis_error_sigma_rad", 0.0),
             initial=_settings(InitialSettings, data.get("initial"), "initial"),
             filter=_settings(FilterSettings, data.get("filter"), "filter"),
             compensation=_settings(CompensationSettings, data.get("compensation"), "compensation"),
