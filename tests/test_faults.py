@@ -266,3 +266,29 @@ def test_a_rate_nis_of_fewer_dof_is_judged_on_the_full_dimension():
     np.testing.assert_array_equal(out[:50_000], nis[:50_000])
     assert np.mean(out[50_000:]) == pytest.approx(3.0, abs=0.05)
     assert np.mean(out[50_000:] > 7.815) == pytest.approx(0.05, abs=0.005)  # chi2(3) 95 %
+
+
+def test_a_drifts_cost_is_measured_against_the_same_run_without_it():
+    """The drift's cost at detection is the faulted estimate against the fault-free one of
+    the same run (the same noise): zero before the fault, and within the issue's 3 sigma
+    at detection on this run."""
+    from dataclasses import replace
+
+    from filters.fault_trials import attitude_cost_sigmas, fault_trial
+    from filters.pipeline import run_filter
+    from ngnav.sim.simulate import simulate_flight
+
+    scn = load_flight("tactical", ["run.rate_hz=200"])
+    fault = ChannelFault(3, "drift", 20.0, 0.0098)
+    est = {}
+    for name, faults in (("faulted", (fault,)), ("clean", ())):
+        sim = simulate_flight(replace(scn, faults=faults), 0)
+        est[name] = run_filter(sim.samples, sim.fixes, sim.config, truth=sim.truth).estimates
+    t_fault = sim.truth.t_s[0] + 20.0
+    before = float(est["faulted"].t_s[est["faulted"].t_s < t_fault][-1])
+    assert attitude_cost_sigmas(est["faulted"], est["clean"], sim.truth, before) == 0.0
+    later = float(est["faulted"].t_s[est["faulted"].t_s > t_fault + 3.0][0])
+    assert attitude_cost_sigmas(est["faulted"], est["clean"], sim.truth, later) > 0.1
+    out = fault_trial(scn, 0, fault, 10.0)
+    assert np.isfinite(out.detected_s) and out.detected_s < 1.0
+    assert 0.0 < out.attitude_cost_sigmas <= 3.0

@@ -215,10 +215,12 @@ def cmd_faults(args: argparse.Namespace) -> int:
         )
         if kind == "drift":
             a = r["attitude_sigmas_at_detection"]
-            if a["n"]:
+            c = r["attitude_cost_sigmas_at_detection"]
+            if a["n"] and c["n"]:
                 line += (
-                    f"; attitude error at detection {a['median']:.2f} / {a['worst']:.2f} sigma, "
-                    f"within 3 sigma {r['within_3_sigma']}/{r['detected']}"
+                    f"; at detection the drift had cost the attitude {c['median']:.2f} / "
+                    f"{c['worst']:.2f} sigma, within 3 sigma {r['within_3_sigma']}/{r['detected']} "
+                    f"(its error {a['median']:.2f} / {a['worst']:.2f} sigma)"
                 )
         if r["stopped"]:
             line += f"; filter stopped in {r['stopped']} runs"
