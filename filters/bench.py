@@ -7,7 +7,8 @@ compensation, nominal propagation, filter prediction, the rate measurement
 and the GPS updates: everything a recorded run goes through except file
 reading. Beside it, in the same process and on the same core, it times a
 *bare* filterpy loop with the same state size and the same number of
-predictions and updates (random but fixed F, Q, H, R): the floor set by
+predictions and updates of each size, the vehicle models' and the rest's included
+(random but fixed F, Q, H, R): the floor set by
 filterpy itself. Wall-clock figures on shared machines are noisy: the median
 of several repeats is reported, and the ratio of the two is the figure to
 compare between machines. The repeats alternate (pipeline, bare loop,
@@ -40,6 +41,8 @@ class FilterBench:
     samples: int
     blocks: int
     gps_fixes: int
+    model_updates: int
+    rest_updates: int
     state_size: int
     array_rate_hz: float
     filter_rate_hz: float
@@ -77,6 +80,8 @@ class FilterBench:
             "samples": self.samples,
             "blocks": self.blocks,
             "gps_fixes": self.gps_fixes,
+            "model_updates": self.model_updates,
+            "rest_updates": self.rest_updates,
             "state_size": self.state_size,
             "array_rate_hz": self.array_rate_hz,
             "filter_rate_hz": self.filter_rate_hz,
@@ -99,25 +104,52 @@ def _first_seconds(samples: ArraySamples, fixes: GpsFixes, seconds: float):
     return ArraySamples(samples.t_s[:n], samples.accel_mps2[:n]), GpsFixes(**sliced)
 
 
-def bare_loop(n_state: int, n_blocks: int, n_rate: int, n_fixes: int, seed: int = 0) -> float:
-    """Seconds for filterpy alone: ``n_blocks`` predict + rate updates, two 3-D updates per fix."""
+def _spread(count: int, n_blocks: int) -> np.ndarray:
+    """How many of ``count`` updates fall in each of ``n_blocks`` blocks, evenly spread."""
+    if count <= 0 or n_blocks <= 0:
+        return np.zeros(max(n_blocks, 0), dtype=int)
+    at = np.arange(count) * n_blocks // count
+    return np.bincount(at, minlength=n_blocks)
+
+
+def bare_loop(
+    n_state: int,
+    n_blocks: int,
+    n_rate: int,
+    n_fixes: int,
+    n_scalar: int = 0,
+    n_rest: int = 0,
+    seed: int = 0,
+) -> float:
+    """Seconds for filterpy alone with the pipeline's measurement counts: ``n_blocks``
+    predictions and rate updates, two 3-D updates per fix (position, velocity), ``n_scalar``
+    1-D updates (the vehicle models) and ``n_rest`` 3-D ones (the zero rate at rest), each
+    kind spread evenly over the blocks."""
     rng = np.random.default_rng(seed)
     f = np.eye(n_state) + 0.01 * rng.normal(size=(n_state, n_state))
     q = np.eye(n_state) * 1e-6
     h_rate = rng.normal(size=(n_rate, n_state))
-    h_gps = rng.normal(size=(3, n_state))
+    h_3 = rng.normal(size=(3, n_state))
+    h_1 = rng.normal(size=(1, n_state))
     r_rate = np.eye(n_rate)
-    r_gps = np.eye(3)
+    r_3 = np.eye(3)
+    r_1 = np.eye(1)
     x = np.zeros(n_state)
     p = np.eye(n_state)
-    every = max(1, n_blocks // max(n_fixes, 1))
+    fixes = _spread(n_fixes, n_blocks)
+    scalars = _spread(n_scalar, n_blocks)
+    rests = _spread(n_rest, n_blocks)
     t0 = time.perf_counter()
     for b in range(n_blocks):
         x, p = kf_predict(x, p, f, q)
         x, p = kf_update(x, p, np.zeros(n_rate), r_rate, h_rate)
-        if b % every == 0:
-            x, p = kf_update(x, p, np.zeros(3), r_gps, h_gps)
-            x, p = kf_update(x, p, np.zeros(3), r_gps, h_gps)
+        for _ in range(fixes[b]):
+            x, p = kf_update(x, p, np.zeros(3), r_3, h_3)
+            x, p = kf_update(x, p, np.zeros(3), r_3, h_3)
+        for _ in range(rests[b]):
+            x, p = kf_update(x, p, np.zeros(3), r_3, h_3)
+        for _ in range(scalars[b]):
+            x, p = kf_update(x, p, np.zeros(1), r_1, h_1)
         p = 0.5 * (p + p.T)
     return time.perf_counter() - t0
 
@@ -140,13 +172,18 @@ def run_filter_bench(scn: FlightScenario, seconds: float = 120.0, repeats: int =
                 f"the first {seconds:g} s of {scn.name!r} hold no filter block (the filter "
                 "starts after the alignment and the first fix): time more seconds"
             )
-        n_fixes = res.counts["gps fixes used"]
-        bare.append(bare_loop(n_state, n_blocks, res.rate_dim, n_fixes))
+        c = res.counts
+        n_fixes = c["gps fixes used"]
+        n_scalar = c["sideslip updates"] + c["angle-of-attack updates"]
+        n_rest = c["zero-rate updates at rest"]
+        bare.append(bare_loop(n_state, n_blocks, res.rate_dim, n_fixes, n_scalar, n_rest))
     return FilterBench(
         scn.name,
         samples.t_s.shape[0],
         n_blocks,
         n_fixes,
+        n_scalar,
+        n_rest,
         n_state,
         scn.run.rate_hz,
         scn.filter.rate_hz,

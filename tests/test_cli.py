@@ -77,11 +77,22 @@ def test_bench_filter_command():
         ).stdout
     )
     assert js["blocks"] == 200 and abs(js["samples"] - 2000) <= 1 and len(js["pipeline_s"]) == 3
+    # 2 s of 10 Hz fixes and of the two 5 Hz vehicle models: the bare loop makes as many
+    assert js["gps_fixes"] == 20 and js["model_updates"] == 20 and js["rest_updates"] == 0
     med = sorted(js["pipeline_s"])[1]
     assert js["pipeline_step_us"] == pytest.approx(1e6 * med / 200)
     assert js["pipeline_samples_per_s"] == pytest.approx(js["samples"] / med)
     ratios = sorted(p / b for p, b in zip(js["pipeline_s"], js["bare_s"], strict=True))
     assert js["pipeline_over_bare"] == pytest.approx(ratios[1])
+
+
+def test_the_bare_loop_spreads_each_kind_of_update_evenly():
+    from filters.bench import _spread
+
+    for count, blocks in ((575, 5750), (7, 10), (10, 10), (0, 5), (23, 5)):
+        per = _spread(count, blocks)
+        assert per.shape == (blocks,) and per.sum() == count
+        assert per.max() - per.min() <= (0 if count % blocks == 0 else 1)
 
 
 def test_a_free_body_runs_without_a_vehicle_model(tmp_path):

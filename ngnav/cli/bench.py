@@ -34,7 +34,8 @@ def cmd_bench_filter(args: argparse.Namespace) -> int:
     print(
         f"{b.scenario}: first {args.seconds:g} s, {b.samples} samples at {b.array_rate_hz:g} Hz, "
         f"filter at {b.filter_rate_hz:g} Hz ({b.blocks} blocks), {b.gps_fixes} GPS fixes at "
-        f"{b.gps_rate_hz:g} Hz, {b.state_size} error states; median of {args.repeats}, one core"
+        f"{b.gps_rate_hz:g} Hz, {b.model_updates} vehicle-model and {b.rest_updates} rest "
+        f"updates, {b.state_size} error states; median of {args.repeats}, one core"
     )
     rt = b.array_rate_hz
     print(
