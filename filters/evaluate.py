@@ -100,14 +100,27 @@ def aoa_nees(est: Estimates, truth: FlightTruth) -> np.ndarray | None:
 
 
 def nees(errors: RunErrors, cov_nav: np.ndarray) -> dict[str, np.ndarray]:
-    """NEES per epoch (E,) for each block of :data:`filters.state.NEES_BLOCKS` and ``all``."""
+    """NEES per epoch (E,) for each block of :data:`filters.state.NEES_BLOCKS` and ``all``.
+
+    NaN where the block's covariance is not finite or not positive definite: the epochs of
+    a lost track, and the few a failing filter records between its covariance checks (the
+    full check runs at every fix and once a second) before it stops.
+    """
     e = errors.stacked()
     out = {}
     for name, sl in {**NEES_BLOCKS, "all": slice(0, 12)}.items():
-        ee = e[:, sl]
-        out[name] = np.einsum(
-            "ei,ei->e", ee, np.linalg.solve(cov_nav[:, sl, sl], ee[..., None])[..., 0]
-        )
+        ee, cc = e[:, sl], cov_nav[:, sl, sl]
+        sd = np.sqrt(np.abs(np.einsum("eii->ei", cc)))
+        ok = np.all(np.isfinite(cc), axis=(1, 2)) & np.all(np.isfinite(ee), axis=1)
+        ok &= np.all(sd > 0.0, axis=1)
+        # on the correlations (the units drop out): positive definite to double precision
+        s_ok = sd[ok]
+        lam, vec = np.linalg.eigh(cc[ok] / s_ok[:, :, None] / s_ok[:, None, :])
+        pd = lam[:, 0] > 1e-12
+        z2 = np.einsum("eij,ei->ej", vec, ee[ok] / s_ok) ** 2 / np.where(pd[:, None], lam, 1.0)
+        val = np.full(e.shape[0], np.nan)
+        val[np.flatnonzero(ok)[pd]] = z2[pd].sum(axis=1)
+        out[name] = val
     return out
 
 

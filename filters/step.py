@@ -362,12 +362,14 @@ class StepMixin:
             nf.reopen_attitude(REOPEN_TILT_SIGMA_RAD, REOPEN_RATE_SIGMA_RPS)
         if self._slip_sigma > 0 and not self._heading_pending:
             # with the no-sideslip model the heading is the course: after a reset of
-            # position and velocity, or a run of rejected sideslip updates with the
-            # velocity accepted, a heading that contradicts the GPS course goes onto it
+            # position and velocity, a run of rejected sideslip updates with the
+            # velocity accepted, or a state that flies backwards (a heading 180 deg off
+            # satisfies both vehicle models, and a tilt relearned from tens of degrees
+            # can settle there), a heading that contradicts the GPS course goes onto it
             was_reset = nf.counters.gps_resets + nf.counters.gps_gap_resets != resets_before
             slip_stuck = res.vel_accepted and nf.consecutive_sideslip_rejects >= RESET_AFTER_REJECTS
             course = _gps_course(vel, vacc)
-            if (was_reset or slip_stuck) and course is not None:
+            if course is not None and (was_reset or slip_stuck or nf.flies_backwards()):
                 nf.check_heading_against_course(*course)
         if self._heading_pending:
             course = _gps_course(vel, vacc)

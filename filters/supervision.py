@@ -120,6 +120,11 @@ class SupervisionMixin:
         """Sideslip updates in a row that failed the gate (a heading far off the course)."""
         return self._consec_slip_rejects
 
+    def flies_backwards(self) -> bool:
+        """Whether the nominal velocity points behind the body (``x`` of ``C^T v`` < 0):
+        never so for a vehicle with the no-sideslip models moving at a course's speed."""
+        return float(dcm_from_quat(self.q)[:, 0] @ self.vel) < 0.0
+
     def check_heading_against_course(self, course_rad: float, sigma_rad: float) -> bool:
         """Documented fallback: put the heading on a GPS course it contradicts.
 

@@ -21,6 +21,32 @@ def test_block_mean_carries_its_standard_error_over_runs():
     assert np.isnan(summarise_block(per_run[:1], 3, 1)[0]["mean_se"])
 
 
+def test_nees_is_exact_where_the_covariance_is_and_nan_where_it_is_not():
+    """The NEES is ``e^T P^-1 e`` per block at every epoch whose block is positive definite
+    (units of very different sizes included); an epoch a failing filter recorded with a
+    singular or non-finite covariance has no statistic, and the others are kept."""
+    from filters.evaluate import RunErrors, nees
+
+    rng = np.random.default_rng(4)
+    n = 6
+    a = rng.normal(size=(n, 12, 12))
+    scale = np.array([1e2] * 3 + [1e-1] * 3 + [1e-3] * 3 + [1e-5] * 3)  # m, m/s, rad, rad/s
+    cov = (a @ a.transpose(0, 2, 1) + 0.1 * np.eye(12)) * np.outer(scale, scale)
+    err = rng.normal(size=(n, 12)) * scale
+    cov[2, 6:9, 6:9] = np.outer(scale[6:9], scale[6:9])  # rank one: singular
+    cov[4] = np.nan  # a lost track's row
+    e = RunErrors(np.arange(n), err[:, 0:3], err[:, 3:6], err[:, 6:9], err[:, 6:9], err[:, 9:12])
+    out = nees(e, cov)
+    blocks = {"pos": slice(0, 3), "vel": slice(3, 6), "att": slice(6, 9), "rate": slice(9, 12)}
+    for name, sl in {**blocks, "all": slice(0, 12)}.items():
+        for k in range(n):
+            if k == 4 or (k == 2 and name in ("att", "all")):
+                assert np.isnan(out[name][k])
+            else:
+                want = err[k, sl] @ np.linalg.solve(cov[k, sl, sl], err[k, sl])
+                assert out[name][k] == pytest.approx(want, rel=1e-9)
+
+
 def test_cli_reports_the_blocks_the_study_reports_without_its_research():
     """``ngnav consistency --runs 1 --from 10`` and ``python -m studies.consistency``
     with the same options as real subprocesses: the same runs give the same blocks,
