@@ -15,9 +15,11 @@ from filters.forecast import (
     HOLD_FORCE_SIGMA_MPS2,
     HOLD_WDOT_SIGMA_RPS2,
 )
+from filters.state import ATT
 from filters.supervision import (
     COURSE_MIN_SPEED_MPS,
     GPS_GAP_RESET_S,
+    LOST_TILT_SIGMA_DEG,
     MODEL_PAUSE_AFTER_VELOCITY_REJECTS,
     REOPEN_AFTER_VELOCITY_REJECTS,
     REOPEN_MIN_INTERVAL_S,
@@ -330,6 +332,13 @@ class StepMixin:
             self._inn.append((t_fix, res.nis_pos, res.nis_vel, res.pos_accepted, res.vel_accepted))
         self.last_gps = res
         self.last_gps_t = t_fix
+        ia = ATT.start
+        tilt_sd = float(np.sqrt(max(nf.P[ia, ia], nf.P[ia + 1, ia + 1])))
+        if tilt_sd > np.deg2rad(LOST_TILT_SIGMA_DEG):
+            raise LostTrackError(
+                f"tilt 1-sigma {np.rad2deg(tilt_sd):.0f} deg after the fix at t = {t_fix:.3f} s "
+                f"(beyond {LOST_TILT_SIGMA_DEG:g} deg: no attitude left to linearise about)"
+            )
         if p_bound is not None:
             _, _, hp, hv = nf.gps_model(truth.q_nb[i1], truth.omega_b_rps[i1])
             for ok, h, var, given in (

@@ -50,6 +50,14 @@ REOPEN_MIN_INTERVAL_S = 10.0
 #: started with its pitch 15 deg off but told as 1 deg, one angle-of-attack update
 #: put the pitch right and the pitch rate 21 deg/s off (2 deg/s sigma).
 MODEL_PAUSE_AFTER_VELOCITY_REJECTS = 2
+#: Tilt 1-sigma (either horizontal axis) beyond which a GPS fix finds the track lost, deg.
+#: The error-state model is linear in the attitude error; with tilts this unknown its
+#: transition is taken about an attitude that may be anywhere, and a start again from the
+#: GPS acceleration and the array's force (``filters.recovery``) knows the tilt to 5 deg.
+#: The healthy scenarios' coasts stay under 10 deg; at the paper's grade (``ic3022``)
+#: ``uav-survey``'s 30 s coast ends at 100-200 deg, and fused on from there run 0 kept
+#: velocity sigmas of 16 m/s to 10^6 m/s for 35 s of accepted fixes.
+LOST_TILT_SIGMA_DEG = 30.0
 #: Horizontal speed above which a GPS course can set the heading, m/s.
 COURSE_MIN_SPEED_MPS = 5.0
 
