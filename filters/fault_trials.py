@@ -144,8 +144,12 @@ def fault_trial(scn, run: int, fault: ChannelFault | None, watch_s: float) -> Tr
         sd = np.sqrt(np.diag(est.cov_nav[j][ATT, ATT]))
         sig = float(np.max(np.abs(err) / sd))
         c_config, c_samples, c_truth, c_fixes = watched(())
-        clean = run_filter(c_samples, c_fixes, c_config, truth=c_truth).estimates
-        cost = attitude_cost_sigmas(est, clean, truth, float(est.t_s[j]))
+        try:
+            clean = run_filter(c_samples, c_fixes, c_config, truth=c_truth).estimates
+        except CovarianceError:
+            pass  # the fault-free twin failed too: no cost to measure (NaN, not counted)
+        else:
+            cost = attitude_cost_sigmas(est, clean, truth, float(est.t_s[j]))
     return TrialOutcome(
         run,
         fault,
