@@ -29,6 +29,7 @@ import numpy as np
 
 from filters.alignment import _gps_course
 from filters.stream import whole_fix
+from filters.supervision import tilt_sigma_rad
 from filters.vehicle_model import ZERO_LIFT_AOA_DEG
 from ngnav.conventions import gravity_n_mps2
 from ngnav.errors import CovarianceError
@@ -100,7 +101,7 @@ class RecoveryMixin:
 
     def _converged(self, p: np.ndarray) -> bool:
         """The attitude's 1-sigma (covariance ``p``) back under the validity limits."""
-        tilt = np.sqrt(max(p[6, 6], p[7, 7]))
+        tilt = tilt_sigma_rad(p)
         return bool(
             tilt < np.deg2rad(VALID_TILT_SIGMA_DEG)
             and np.sqrt(p[8, 8]) < np.deg2rad(VALID_HEADING_SIGMA_DEG)

@@ -15,7 +15,6 @@ from filters.forecast import (
     HOLD_FORCE_SIGMA_MPS2,
     HOLD_WDOT_SIGMA_RPS2,
 )
-from filters.state import ATT
 from filters.supervision import (
     COURSE_MIN_SPEED_MPS,
     GPS_GAP_RESET_S,
@@ -26,6 +25,7 @@ from filters.supervision import (
     REOPEN_RATE_SIGMA_RPS,
     REOPEN_TILT_SIGMA_RAD,
     RESET_AFTER_REJECTS,
+    tilt_sigma_rad,
 )
 from filters.updates import update_correlated
 from filters.vehicle_model import (
@@ -332,8 +332,7 @@ class StepMixin:
             self._inn.append((t_fix, res.nis_pos, res.nis_vel, res.pos_accepted, res.vel_accepted))
         self.last_gps = res
         self.last_gps_t = t_fix
-        ia = ATT.start
-        tilt_sd = float(np.sqrt(max(nf.P[ia, ia], nf.P[ia + 1, ia + 1])))
+        tilt_sd = tilt_sigma_rad(nf.P)
         if tilt_sd > np.deg2rad(LOST_TILT_SIGMA_DEG):
             raise LostTrackError(
                 f"tilt 1-sigma {np.rad2deg(tilt_sd):.0f} deg after the fix at t = {t_fix:.3f} s "

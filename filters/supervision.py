@@ -71,6 +71,13 @@ COURSE_MIN_SPEED_MPS = 5.0
 GAP_RESET_AFTER_REJECTS = 3
 
 
+def tilt_sigma_rad(p: np.ndarray) -> float:
+    """The tilt's 1-sigma, rad: the larger of the two horizontal NED attitude axes of the
+    error covariance ``p`` (n, n)."""
+    ia = ATT.start
+    return float(np.sqrt(max(p[ia, ia], p[ia + 1, ia + 1])))
+
+
 @dataclass
 class Counters:
     """What the filter did, for the run summary."""
