@@ -72,3 +72,23 @@ def test_a_campaign_runs_beside_another_cluster():
     finally:
         other.close()
     assert sorted(got) == [0, 1, 1, 2]
+
+
+def test_a_local_campaign_writes_nothing_on_stderr():
+    """A user's terminal shows the campaign's own output only: no dask log lines from the
+    cluster's start or its shutdown (workers' connections closing, retirements)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import time\n"
+        "from ngnav.campaign import run_campaign\n"
+        "got = []\n"
+        "run_campaign(time.sleep, range(3), lambda i, v: got.append(i), workers=2)\n"
+        "print(sorted(got))\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False
+    )
+    assert proc.returncode == 0 and proc.stdout == "[0, 1, 2]\n", proc.stderr
+    assert proc.stderr == ""
