@@ -117,8 +117,7 @@ class ChannelMonitor:
         self._win_n = 0
         self._flat = np.zeros(n, dtype=bool)
         self._noisy = np.zeros(n, dtype=bool)
-        self._dt = np.nan  # the sample interval seen, s
-        self._t_last = np.nan
+        self._t_last = np.nan  # the last sample's time, s
         #: Every fault found, in the order found.
         self.events: list[FaultEvent] = []
         self._open: dict[int, int] = {}  # channel -> index of its event
@@ -171,12 +170,15 @@ class ChannelMonitor:
         if k == 0:
             return
         a = np.asarray(raw_mps2, dtype=float).reshape(k, self.n_channels)
-        if k > 1:
-            self._dt = _median(np.diff(t))
-        elif np.isfinite(self._t_last):
-            self._dt = float(t[0] - self._t_last)
+        t_before = self._t_last
         self._t_last = float(t[-1])
-        dt = self._dt if np.isfinite(self._dt) else 0.0
+
+        def interval() -> float:
+            """The sample interval, s (read only to date a fault's onset)."""
+            if k > 1:
+                return _median(np.diff(t))
+            return float(t[0] - t_before) if np.isfinite(t_before) else 0.0
+
         # -- flat line: repeats of the previous reading, all channels (each rise of the
         # flat flag is an alarm; the first one opens the event); and the second
         # differences for the noise level
@@ -191,7 +193,7 @@ class ChannelMonitor:
                 kind = "saturated"
             else:
                 kind = "stuck"
-            self._isolate(c, kind, float(t[kh]), float(t[kh]) - (FLAT_RUN - 1) * dt)
+            self._isolate(c, kind, float(t[kh]), float(t[kh]) - (FLAT_RUN - 1) * interval())
         self._flat = flat_now
         # -- noise level: the median square of second differences over whole windows
         k0 = 0
@@ -203,16 +205,15 @@ class ChannelMonitor:
             if self._win_n < NOISE_WINDOW:
                 break
             self._win_n = 0
-            sq = self._win * self._win
-            if np.isnan(sq).any():
+            if np.isnan(self._win).any():
                 with np.errstate(all="ignore"), warnings.catch_warnings():
                     warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN channel
-                    ratio = np.nanmedian(sq, axis=0) / self._d2_median
-            else:  # the same value, without nanmedian's masked-array detour
-                ratio = np.median(sq, axis=0) / self._d2_median
+                    ratio = np.nanmedian(self._win * self._win, axis=0) / self._d2_median
+            else:  # the same value, compiled
+                ratio = kernels.column_median_squares(self._win) / self._d2_median
             noisy = ratio > NOISY_RATIO
-            onset = float(t[k1 - 1]) - (NOISE_WINDOW - 1) * dt
             for c in np.flatnonzero(noisy & ~self._noisy).tolist():
+                onset = float(t[k1 - 1]) - (NOISE_WINDOW - 1) * interval()
                 self._isolate(c, "noisy", float(t[k1 - 1]), onset)
             self._noisy = noisy
 

@@ -1017,6 +1017,18 @@ def flat_line_runs(prev: np.ndarray, a: np.ndarray, run: np.ndarray, flat: np.nd
 
 
 @njit(cache=True)
+def column_median_squares(win: np.ndarray) -> np.ndarray:
+    """Each column's median of the squares of ``win`` (K, N) with no NaN (the noise-level
+    test's window, ``faults.ChannelMonitor``): ``np.median(win * win, axis=0)``."""
+    n = win.shape[1]
+    out = np.empty(n)
+    for c in range(n):
+        col = win[:, c]
+        out[c] = np.median(col * col)
+    return out
+
+
+@njit(cache=True)
 def parity_cusum(
     r: np.ndarray, cov: np.ndarray, g_sig: np.ndarray, cusum: np.ndarray, allowance: float
 ) -> np.ndarray:
