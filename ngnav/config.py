@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import tomllib
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -24,6 +25,12 @@ class RunSection:
 
     seed: int
     rate_hz: float
+
+    def __post_init__(self) -> None:
+        if self.seed < 0:
+            raise ValueError(f"run.seed must be 0 or more, got {self.seed}")
+        if not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
+            raise ValueError(f"run.rate_hz must be positive, got {self.rate_hz}")
 
 
 @dataclass(frozen=True)
@@ -94,7 +101,9 @@ def build_section(cls: type, table: Any, section: str, source: str) -> Any:
     try:
         return cls(**kwargs)
     except ValueError as exc:
-        raise ValueError(f"{source}: [{section}] {exc}") from None
+        msg = str(exc)  # a record's own message may name the key as section.key already
+        where = "" if msg.startswith(f"{section}.") else f"[{section}] "
+        raise ValueError(f"{source}: {where}{msg}") from None
 
 
 def _parse_value(text: str) -> Any:

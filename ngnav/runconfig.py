@@ -221,10 +221,50 @@ def _vector(table: dict, key: str, n: int, where: str, default: Any = None) -> n
     return a
 
 
-def _settings(cls: type, table: Any, where: str) -> Any:
+#: The keys of the sections read here by hand (the settings' sections check their own):
+#: anything else in a ``config.toml`` is a misspelling, refused with the nearest name
+#: (a misspelt ``[gps]`` silently put the antenna at the array).
+_HARDWARE_KEYS = {
+    "array": ("positions_b_m", "axes_b", "name", "lever_arm_m"),
+    "calibration": (
+        "position_error_b_m",
+        "axis_error_rad",
+        "scale",
+        "offset_mps2",
+        "position_sigma_m",
+        "scale_sigma",
+        "axis_error_sigma_rad",
+    ),
+    "sensor": ("noise_sigma_mps2", "turn_on_bias_mps2", "bias_rw_mps2_rts", "range_mps2"),
+    "reference": ("lat_deg", "lon_deg", "alt_m"),
+    "gps": ("antenna_b_m",),
+}
+_SETTINGS_SECTIONS = ("initial", "filter", "compensation", "vehicle", "rest")
+
+
+def _refuse_unknown(data: dict, where: str) -> None:
+    """An unknown section or hardware key: one error naming the nearest known one."""
+    from ngnav.config import unknown_name
+
+    sections = (*_HARDWARE_KEYS, *_SETTINGS_SECTIONS)
+    for name, table in data.items():
+        if name not in sections:
+            raise ValueError(
+                f"{where}: {unknown_name('section', f'[{name}]', (f'[{s}]' for s in sections))}"
+            )
+        keys = _HARDWARE_KEYS.get(name)
+        if keys is None or not isinstance(table, dict):
+            continue
+        extra = sorted(set(table) - set(keys))
+        if extra:
+            known = (f"{name}.{k}" for k in keys)
+            raise ValueError(f"{where}: {unknown_name('key', f'{name}.{extra[0]}', known)}")
+
+
+def _settings(cls: type, table: Any, section: str, source: str) -> Any:
     from ngnav.config import build_section
 
-    return build_section(cls, table if table is not None else {}, where, "config.toml")
+    return build_section(cls, table if table is not None else {}, section, source)
 
 
 def read_run_config(path: str | Path) -> RunConfig:
@@ -245,6 +285,7 @@ def read_run_config_text(text: str, where: str) -> RunConfig:
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{p}: not valid TOML: {exc}") from None
     data = migrate_legacy(data, p)
+    _refuse_unknown(data, p)
     for section in ("array", "calibration", "sensor", "reference"):
         if not isinstance(data.get(section), dict):
             raise ValueError(f"{p}: missing section [{section}]")
@@ -284,11 +325,13 @@ def read_run_config_text(text: str, where: str) -> RunConfig:
             position_sigma_m=float(cal.get("position_sigma_m", 0.0)),
             scale_sigma=_vector(cal, "scale_sigma", n, f"{p} [calibration]", 0.0),
             axis_error_sigma_rad=cal.get("axis_error_sigma_rad", 0.0),
-            initial=_settings(InitialSettings, data.get("initial"), "initial"),
-            filter=_settings(FilterSettings, data.get("filter"), "filter"),
-            compensation=_settings(CompensationSettings, data.get("compensation"), "compensation"),
-            vehicle=_settings(VehicleSettings, data.get("vehicle"), "vehicle"),
-            rest=_settings(RestSettings, data.get("rest"), "rest"),
+            initial=_settings(InitialSettings, data.get("initial"), "initial", p),
+            filter=_settings(FilterSettings, data.get("filter"), "filter", p),
+            compensation=_settings(
+                CompensationSettings, data.get("compensation"), "compensation", p
+            ),
+            vehicle=_settings(VehicleSettings, data.get("vehicle"), "vehicle", p),
+            rest=_settings(RestSettings, data.get("rest"), "rest", p),
         )
     except ValueError as exc:
         msg = str(exc)
@@ -377,6 +420,7 @@ def read_array_config(path: str | Path) -> ArrayConfig:
     """Read the array and sensor sections of a ``config.toml`` (no other section needed)."""
     p = Path(path)
     data = read_toml_file(p, f"{p}: no such file")
+    _refuse_unknown(data, str(p))
     for section in ("array", "sensor"):
         if not isinstance(data.get(section), dict):
             raise ValueError(f"{p}: missing section [{section}]")

@@ -87,6 +87,37 @@ def test_bad_run_paths_are_one_line_and_exit_2(tactical_run, tmp_path, make, nee
     assert needle.lower() in _one_line(proc).lower()
 
 
+@pytest.mark.parametrize(
+    ("old", "new", "needle"),
+    [
+        ("[gps]", "[gpss]", "unknown section [gpss] (did you mean [gps]?)"),
+        (
+            "antenna_b_m =",
+            "antena_b_m =",
+            "unknown key gps.antena_b_m (did you mean gps.antenna_b_m?)",
+        ),
+        ("[vehicle]", "[vehicles]", "unknown section [vehicles] (did you mean [vehicle]?)"),
+        (
+            "range_mps2 =",
+            "range_mps =",
+            "unknown key sensor.range_mps (did you mean sensor.range_mps2?)",
+        ),
+    ],
+)
+def test_a_misspelt_config_section_or_key_is_refused(tactical_run, tmp_path, old, new, needle):
+    """Read as absent, a misspelt [gps] put the antenna at the array and a misspelt [vehicle]
+    turned the fixed-wing models off, without a word."""
+    run = tmp_path / "run"
+    run.mkdir()
+    for f in tactical_run.iterdir():
+        (run / f.name).write_bytes(f.read_bytes())
+    text = (run / "config.toml").read_text()
+    assert old in text
+    (run / "config.toml").write_text(text.replace(old, new, 1))
+    proc = run_cli("run", str(run), check=False)
+    assert proc.returncode == 2 and needle in _one_line(proc)
+
+
 def test_an_unwritable_out_is_refused_before_the_run(tactical_run, tmp_path):
     for out, needle in (
         (tmp_path / "nofolder" / "e.csv", "does not exist"),
@@ -124,32 +155,55 @@ def test_an_unknown_set_key_names_it_and_suggests_the_nearest():
 
 def test_ctrl_c_exits_130_without_a_traceback(tmp_path):
     """SIGINT (what Ctrl-C sends) while a simulated flight streams in real time."""
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "ngnav.cli",
-            "simulate",
-            "--scenario",
-            "tactical",
-            "--out",
-            str(tmp_path / "run"),
-            "--stream",
-            "udpout:127.0.0.1:9",
-            "--speed",
-            "1",
-        ],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    # a shell's background job (`make test &`) ignores SIGINT, and a child inherits that: start
+    # the command as a terminal would, with SIGINT at its default (a caught signal is)
+    ignored = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "ngnav.cli",
+                "simulate",
+                "--scenario",
+                "tactical",
+                "--out",
+                str(tmp_path / "run"),
+                "--stream",
+                "udpout:127.0.0.1:9",
+                "--speed",
+                "1",
+            ],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+    finally:
+        signal.signal(signal.SIGINT, ignored)
+    t0 = time.monotonic()
     try:
         assert proc.stdout.readline().startswith("simulated ")  # now streaming for a minute
         time.sleep(0.5)
         proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
+        out, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
-    assert proc.returncode == 130, err
+    took = time.monotonic() - t0
+    assert proc.returncode == 130, f"exit {proc.returncode} after {took:.1f} s: {out!r} {err!r}"
     assert "Traceback" not in err and err.strip() == "ngnav simulate: interrupted"
+
+
+def test_a_bad_stream_endpoint_is_refused_before_the_simulation(tmp_path):
+    proc = run_cli(
+        "simulate",
+        "--scenario",
+        "static",
+        "--out",
+        str(tmp_path / "run"),
+        "--stream",
+        "127.0.0.1:14560",
+        check=False,
+    )
+    assert proc.returncode == 2 and "is not udpin:HOST:PORT or udpout" in _one_line(proc)
+    assert not (tmp_path / "run").exists()  # nothing simulated, nothing written

@@ -52,11 +52,63 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                 f"  {'  bound (RMS)':14s}"
                 + "".join(f"{r.bound[a]:>9.3f}{'':11s}" for a, _, _ in cols)
             )
-    for k, v in out.get("events", {}).items():
-        print(f"  {k}: {v}")
-    for k, v in out.get("targets", {}).items():
-        print(f"  {k}: {v}")
+    for line in evaluation_lines(out):
+        print(f"  {line}")
     return 0
+
+
+def evaluation_lines(out: dict) -> list[str]:
+    """The run's events and accuracy figures below the table, as sentences (``--json``
+    keeps them as numbers)."""
+    lines = []
+    for name, ev in out.get("events", {}).items():
+        if name == "outage":
+            rec = ev["recovered_within_3sigma_after_s"]
+            back = (
+                f"position and velocity inside 3 sigma again {rec:.1f} s after it"
+                if rec is not None
+                else "not inside 3 sigma again by the run's end"
+            )
+            lines.append(
+                f"GPS outage to {ev['end_s']:.1f} s: horizontal error {ev['horiz_err_at_end_m']:.2f} m "
+                f"at its end, {back}; horizontal RMS outside it "
+                f"{ev['horiz_rms_outside_outage_m']:.3f} m"
+            )
+        else:  # a glitched fix
+            verdict = "rejected" if ev["rejected"] else "ACCEPTED"
+            lines.append(
+                f"{name}: {verdict} (NIS {ev['nis']:.1f}), the estimate moved {ev['moved_m']:.2f} m "
+                f"beside a horizontal sigma of {ev['sigma_m']:.2f} m"
+            )
+    t = out.get("targets", {})
+    if "horiz_rms_over_raw_gps" in t:
+        outside = t.get("horiz_rms_over_raw_gps_outside_outage")
+        lines.append(
+            f"gm11 horizontal RMS over the raw GPS's: {t['horiz_rms_over_raw_gps']:.3f}"
+            + (f" ({outside:.3f} outside the outage)" if outside is not None else "")
+        )
+    if "att_rms_over_bound" in t:
+        lines.append(f"gm11 attitude RMS over its bound: {t['att_rms_over_bound']:.2f}")
+    gap = t.get("gm11_gap_closed")
+    if isinstance(gap, str):
+        lines.append(
+            "no compensation diverged: no whole-run attitude gap between it and the true "
+            "geometry (oracle) for gm11 to close"
+        )
+    elif gap is not None:
+        lines.append(
+            f"share of the attitude RMS gap between no compensation and the true geometry "
+            f"(oracle) that gm11 closes: {gap:.2f}"
+        )
+    before = t.get("gm11_gap_closed_before_divergence")
+    if before is not None:
+        (t0, t1), r = before["window_s"], before["att_rms_deg"]
+        lines.append(
+            f"over {t0:.1f}-{t1:.1f} s, before no compensation diverged, gm11 closes "
+            f"{before['closed']:.2f} of that gap (attitude RMS none / gm11 / oracle "
+            f"{r['none']:.3f} / {r['gm11']:.3f} / {r['oracle']:.3f} deg)"
+        )
+    return lines
 
 
 def consistency_header(out: dict) -> str:
@@ -210,7 +262,7 @@ def cmd_faults(args: argparse.Namespace) -> int:
     for kind, r in out["kinds"].items():
         line = (
             f"  {kind:9s} detected {r['detected']}/{r['trials']} (median / worst {ms(r['detection_s'])}), "
-            f"isolated to the channel {r['isolated_right']} ({ms(r['isolation_s'])}), "
+            f"isolated to the right channel in {r['isolated_right']} ({ms(r['isolation_s'])}), "
             f"to its pair only {r['not_isolable']}; alarms on other channels {r['other_alarms']}"
         )
         if kind == "drift":
@@ -327,7 +379,16 @@ def add_parsers(sub) -> None:
     p.add_argument(
         "--watch", type=float, default=10.0, metavar="S", help="seconds watched after the fault"
     )
-    p.add_argument("--workers", type=int, default=2)
-    p.add_argument("--scheduler", metavar="tcp://HOST:8786")
-    p.add_argument("--json", action="store_true")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=2,
+        help="worker processes of a local dask cluster; 1 runs here (default: %(default)s)",
+    )
+    p.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:8786",
+        help="run on an existing dask cluster (its workers need ngnav installed)",
+    )
+    p.add_argument("--json", action="store_true", help="print the figures as JSON")
     p.set_defaults(func=cmd_faults)

@@ -54,6 +54,39 @@ def _print_counts(counts: dict[str, int], indent: str = "  ") -> None:
         print(f"{indent}{line}")
 
 
+#: What ``ngnav run`` writes beside a run (``RUN/NAME``, or ``RUN.NAME`` beside a tlog).
+_RUN_OUTPUTS = (
+    "estimates.csv",
+    "estimates.npz",
+    "estimates.nis.csv",
+    "estimates.smoothed.csv",
+    "estimates.smoothed.npz",
+)
+
+
+def _clear_earlier_outputs(out: Path) -> list[str]:
+    """Remove what ``ngnav run`` and ``ngnav plot`` wrote at ``out`` for an earlier flight:
+    read beside the new run's truth, its estimates were judged against a flight they never
+    saw (``ngnav plot`` reported a yaw RMS of 125 deg). Returns what was removed."""
+    from telemetry.runfiles import is_tlog
+
+    if is_tlog(out):
+        files = [out.parent / f"{out.stem}.{name}" for name in _RUN_OUTPUTS]
+    else:
+        plots = out / "plots"
+        files = [out / name for name in _RUN_OUTPUTS]
+        if plots.is_dir():
+            files += [*sorted(plots.glob("*.png")), plots / "report.html"]
+    removed = []
+    for f in files:
+        if f.is_file():
+            f.unlink()
+            removed.append(str(f))
+    if not is_tlog(out) and (out / "plots").is_dir() and not any((out / "plots").iterdir()):
+        (out / "plots").rmdir()
+    return removed
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     from ngnav.conventions import G0_MPS2
     from ngnav.runio import write_truth_csv
@@ -76,11 +109,17 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             return 0
     if args.out is None and args.stream is None:
         raise ValueError("say where the run goes: --out DIR|NAME.tlog and/or --stream udpout:...")
+    if args.stream is not None:
+        from telemetry.live import parse_endpoint
+
+        dest = parse_endpoint(args.stream, "udpout")  # refused before the simulation
     scn = flight_scenario(args)
     with FractionBar("simulate") as bar:
         sim = simulate_flight(scn, args.run_index, progress=bar)
     where = []
+    removed: list[str] = []
     if args.out is not None:
+        removed = _clear_earlier_outputs(Path(args.out))
         out = write_run(args.out, sim.samples, sim.fixes, sim.config)
         write_truth_csv(truth_path(out), sim.truth)
         where.append(str(out))
@@ -107,12 +146,15 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         f"{walk:.1f} ug over the flight; filter axis states "
         f"{'on' if sim.config.carries_calibration_error else 'off'}"
     )
+    if removed:
+        print(
+            f"removed {len(removed)} outputs of an earlier flight (estimates, figures) from {out}"
+        )
     if args.stream is not None:
         from telemetry.inputs import input_frames
-        from telemetry.live import parse_endpoint, play_frames
+        from telemetry.live import play_frames
         from telemetry.tlog import FrameWriter, frames_of
 
-        dest = parse_endpoint(args.stream, "udpout")
         frames = frames_of(input_frames(sim.samples, sim.fixes, sim.config), FrameWriter())
         n = play_frames(frames, dest, args.speed)
         print(f"streamed {n} datagrams to {dest} at speed {args.speed:g}")
