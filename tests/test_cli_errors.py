@@ -207,3 +207,16 @@ def test_a_bad_stream_endpoint_is_refused_before_the_simulation(tmp_path):
     )
     assert proc.returncode == 2 and "is not udpin:HOST:PORT or udpout" in _one_line(proc)
     assert not (tmp_path / "run").exists()  # nothing simulated, nothing written
+
+
+def test_output_options_a_csv_run_ignores_are_still_checked(tactical_run, tmp_path):
+    """A bad MAVLink rate was refused only for a tlog output; ``convert`` to NAME.csv made a
+    directory of that name."""
+    proc = run_cli(
+        "run", str(tactical_run), "--rate", "odometry=abc", "--out", str(tmp_path / "e.csv"),
+        check=False,
+    )  # fmt: skip
+    assert proc.returncode == 2 and "output rate 'odometry=abc' is not STREAM=HZ" in _one_line(proc)
+    proc = run_cli("convert", str(tactical_run), str(tmp_path / "out.csv"), check=False)
+    assert proc.returncode == 2 and "a run is a directory" in _one_line(proc)
+    assert not (tmp_path / "out.csv").exists()

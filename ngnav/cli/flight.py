@@ -194,6 +194,9 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"{src} is not a run: give a directory (config.toml, array.csv, gps.csv) or a .tlog"
         )
     _check_writable(out)
+    from ngnav.cli.stream import output_settings
+
+    output_settings(args)  # the MAVLink options checked whatever the output (used by a tlog's)
     failure = None
     if is_tlog(out):
         # estimates as MAVLink: through the stream path, as a live link would run
@@ -304,6 +307,10 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
     from telemetry.runfiles import read_run, truth_path, write_run
 
+    if Path(args.dst).suffix.lower() in (".csv", ".toml", ".npz"):
+        raise ValueError(
+            f"{args.dst}: a run is a directory (array.csv, gps.csv, config.toml) or NAME.tlog"
+        )
     inp = read_run(args.src)
     out = write_run(args.dst, inp.samples, inp.fixes, inp.config)
     if truth_path(args.src).exists():

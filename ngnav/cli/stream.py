@@ -77,10 +77,11 @@ def parse_allow(items: list[str]) -> set[tuple[int, int]] | None:
 
 
 def print_counts(title: str, counts: dict[str, int], indent: str = "  ") -> None:
-    """A counter block of the run summary."""
-    print(f"{indent}{title}:")
-    for k, v in counts.items():
-        print(f"{indent}  {k}: {v}")
+    """A counter block of the stream's summary: the counters that are not zero, on one line
+    (none: no line; ``--json`` keeps every counter)."""
+    told = [f"{k} {v}" for k, v in counts.items() if v]
+    if told:
+        print(f"{indent}{title}: {', '.join(told)}")
 
 
 def cmd_stream(args: argparse.Namespace) -> int:
@@ -130,15 +131,22 @@ def cmd_stream(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary, indent=1))
     else:
-        print(
-            f"  {st.datagrams} datagrams in, {sum(st.frames_sent.values())} frames out; "
+        latency = (
             f"latency input -> estimate p50 {p50 * 1e3:.3f} ms, p99 {p99 * 1e3:.3f} ms, "
             f"max {pmax * 1e3:.3f} ms"
+            if st.epochs
+            else "no estimate made"
+        )
+        print(
+            f"  {st.datagrams} datagrams in, {sum(st.frames_sent.values())} frames out; {latency}"
         )
         print_counts("input", st.counts)
         print_counts("frames sent", st.frames_sent)
         if st.result is not None:
-            print_counts("filter", st.result.counts)
+            from ngnav.cli.flight import count_lines
+
+            for line in count_lines(st.result.counts):
+                print(f"  {line}")
             for ev in st.result.faults:
                 print(f"  channel fault: {ev.describe()}")
             for loss in st.result.track_losses:
