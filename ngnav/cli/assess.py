@@ -287,6 +287,21 @@ def cmd_faults(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_campaign_args(p: argparse.ArgumentParser) -> None:
+    """Where a campaign's runs go: ``--workers`` (a local cluster) or ``--scheduler``."""
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=2,
+        help="worker processes of a local dask cluster; 1 runs here (default: %(default)s)",
+    )
+    p.add_argument(
+        "--scheduler",
+        metavar="tcp://HOST:8786",
+        help="run on an existing dask cluster (its workers need ngnav installed)",
+    )
+
+
 def add_consistency_args(p: argparse.ArgumentParser, first: bool = True) -> None:
     """The options of ``ngnav consistency`` (``python -m studies.consistency`` adds its own,
     and splits runs 0 .. RUNS - 1 into draws itself: no ``--first``)."""
@@ -299,17 +314,7 @@ def add_consistency_args(p: argparse.ArgumentParser, first: bool = True) -> None
             metavar="K",
             help="index of the first run: runs K .. K + RUNS - 1, another draw (default: 0)",
         )
-    p.add_argument(
-        "--workers",
-        type=int,
-        default=2,
-        help="worker processes of a local dask cluster; 1 runs here (default: %(default)s)",
-    )
-    p.add_argument(
-        "--scheduler",
-        metavar="tcp://HOST:8786",
-        help="run on an existing dask cluster (its workers need ngnav installed)",
-    )
+    add_campaign_args(p)
     p.add_argument("--method", choices=["gm11", "none", "line", "last", "oracle"])
     p.add_argument(
         "--profile",
@@ -379,16 +384,6 @@ def add_parsers(sub) -> None:
     p.add_argument(
         "--watch", type=float, default=10.0, metavar="S", help="seconds watched after the fault"
     )
-    p.add_argument(
-        "--workers",
-        type=int,
-        default=2,
-        help="worker processes of a local dask cluster; 1 runs here (default: %(default)s)",
-    )
-    p.add_argument(
-        "--scheduler",
-        metavar="tcp://HOST:8786",
-        help="run on an existing dask cluster (its workers need ngnav installed)",
-    )
+    add_campaign_args(p)
     p.add_argument("--json", action="store_true", help="print the figures as JSON")
     p.set_defaults(func=cmd_faults)
