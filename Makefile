@@ -12,7 +12,10 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml requirements.lock
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade "pip>=23.2"
-	$(BIN)/python -m pip install -q -c requirements.lock -e ".[test]"
+	# setuptools announces every editable install on stderr (a notice about folders named
+	# like the package: here the package is this folder); the notice is all it hides
+	PYTHONWARNINGS="ignore:Editable installation" \
+		$(BIN)/python -m pip install -q -c requirements.lock -e ".[test]"
 	touch $(STAMP)
 
 run: $(STAMP)
