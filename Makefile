@@ -9,11 +9,11 @@ STAMP := $(VENV)/.installed
 
 .PHONY: run test bench lint clean
 
+# PYTHONWARNINGS: setuptools announces every editable install on stderr (a notice about
+# folders named like the package: here the package is this folder); the notice is all it hides
 $(STAMP): pyproject.toml requirements.lock
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade "pip>=23.2"
-	# setuptools announces every editable install on stderr (a notice about folders named
-	# like the package: here the package is this folder); the notice is all it hides
 	PYTHONWARNINGS="ignore:Editable installation" \
 		$(BIN)/python -m pip install -q -c requirements.lock -e ".[test]"
 	touch $(STAMP)
