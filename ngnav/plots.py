@@ -24,6 +24,17 @@ from ngnav.rotation import euler_from_quat
 FIG_SIZE_IN = (10.0, 7.0)
 DPI = 100
 #: The NED and FRD axis names of the three components of each navigation block.
+#: The files :func:`plot_run` and :func:`write_report` may write into a run's ``plots/``.
+RUN_PLOT_FILES = (
+    "trajectory.png",
+    "position.png",
+    "velocity.png",
+    "attitude.png",
+    "rate.png",
+    "errors.png",
+    "nis.png",
+    "report.html",
+)
 AXES = {"pos": ("N", "E", "D"), "vel": ("N", "E", "D"), "att": ("N", "E", "D"), "rate": "xyz"}
 
 

@@ -248,12 +248,15 @@ def _refuse_unknown(data: dict, where: str) -> None:
 
     sections = (*_HARDWARE_KEYS, *_SETTINGS_SECTIONS)
     for name, table in data.items():
+        if not isinstance(table, dict):
+            what = f"[{name}] must be a table" if name in sections else f"unknown key {name}"
+            raise ValueError(f"{where}: {what}")
         if name not in sections:
             raise ValueError(
                 f"{where}: {unknown_name('section', f'[{name}]', (f'[{s}]' for s in sections))}"
             )
         keys = _HARDWARE_KEYS.get(name)
-        if keys is None or not isinstance(table, dict):
+        if keys is None:
             continue
         extra = sorted(set(table) - set(keys))
         if extra:

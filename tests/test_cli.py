@@ -202,8 +202,12 @@ def test_progress_is_drawn_on_a_terminal_and_not_in_ci_or_a_pipe(tmp_path):
 def test_the_command_runs_blas_on_one_thread_unless_told():
     """The filter's small matrices gain nothing from BLAS threads and lose much on a busy
     machine: the command sets one thread before numpy loads, and a user's setting stands."""
-    code = "import os, ngnav.cli, numpy; print(os.environ['OPENBLAS_NUM_THREADS'])"
+    code = (
+        "import os, sys, ngnav.cli; assert 'numpy' not in sys.modules; import numpy; "
+        "print(os.environ['OPENBLAS_NUM_THREADS'])"
+    )
     env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    env = {k: v for k, v in env.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")}
     for given, expected in ((None, "1"), ("2", "2")):
         e = env if given is None else {**env, "OPENBLAS_NUM_THREADS": given}
         out = subprocess.run(
@@ -220,10 +224,10 @@ def test_a_new_flight_removes_the_outputs_of_the_earlier_one(tmp_path):
     (d / "plots").mkdir(parents=True)
     ours = [d / "estimates.csv", d / "estimates.smoothed.npz", d / "plots" / "attitude.png"]
     ours.append(d / "plots" / "report.html")
-    theirs = [d / "notes.txt", d / "plots" / "sketch.txt"]
+    theirs = [d / "notes.txt", d / "plots" / "sketch.txt", d / "plots" / "my_photo.png"]
     for f in ours + theirs:
         f.write_text("earlier\n")
     out = run("simulate", "--scenario", "static", "--out", str(d)).stdout
-    assert f"removed 4 outputs of an earlier flight (estimates, figures) from {d}" in out
+    assert f"removed 4 outputs of an earlier flight (estimates, figures) at {d}" in out
     assert not any(f.exists() for f in ours) and all(f.exists() for f in theirs)
     assert (d / "truth.csv").exists() and (d / "array.csv").exists()

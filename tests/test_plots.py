@@ -16,7 +16,7 @@ from filters.output import (
     write_nis_csv,
 )
 from filters.pipeline import run_filter
-from ngnav.plots import outage_spans
+from ngnav.plots import RUN_PLOT_FILES, outage_spans
 from ngnav.sim.flight_scenario import load_flight
 from ngnav.sim.simulate import simulate_flight
 from tests.helpers import run_cli
@@ -50,6 +50,8 @@ def test_every_run_figure_is_an_image_with_content(plotted):
     run, proc = plotted
     for name in RUN_FIGURES:
         _assert_image_with_content(run / "plots" / f"{name}.png")
+    # what a new flight into the same folder removes (ngnav.plots.RUN_PLOT_FILES) is all it wrote
+    assert {p.name for p in (run / "plots").iterdir()} <= set(RUN_PLOT_FILES)
     assert "7 figures" in proc.stdout
     assert "GPS outages (shaded): 19.9-25.0 s" in proc.stdout  # last fix to next fix
 

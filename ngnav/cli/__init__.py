@@ -21,8 +21,9 @@ from ngnav import __version__
 # and on a busy machine cost many times the work (`ngnav run --smooth` on `tactical`: 6 s
 # alone; beside a two-worker campaign 16-37 s, 9-10 s on one thread): one thread unless
 # the user's environment says otherwise. Set here, before anything imports numpy.
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+_BLAS_THREADS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+if not any(v in os.environ for v in _BLAS_THREADS):
+    os.environ.update(dict.fromkeys(_BLAS_THREADS, "1"))
 
 #: Exit status of a run whose filter diverged or lost its track (estimates up to it kept).
 EXIT_DIVERGED = 3

@@ -54,37 +54,27 @@ def _print_counts(counts: dict[str, int], indent: str = "  ") -> None:
         print(f"{indent}{line}")
 
 
-#: What ``ngnav run`` writes beside a run (``RUN/NAME``, or ``RUN.NAME`` beside a tlog).
-_RUN_OUTPUTS = (
-    "estimates.csv",
-    "estimates.npz",
-    "estimates.nis.csv",
-    "estimates.smoothed.csv",
-    "estimates.smoothed.npz",
-)
-
-
-def _clear_earlier_outputs(out: Path) -> list[str]:
-    """Remove what ``ngnav run`` and ``ngnav plot`` wrote at ``out`` for an earlier flight:
-    read beside the new run's truth, its estimates were judged against a flight they never
-    saw (``ngnav plot`` reported a yaw RMS of 125 deg). Returns what was removed."""
+def _earlier_outputs(out: Path) -> list[Path]:
+    """What ``ngnav run`` (its default estimates, with their NIS, NPZ and smoothed files) and
+    ``ngnav plot`` (``plots/``) write for the run at ``out``, a directory or a tlog."""
+    from filters.output import nis_path, npz_path
+    from ngnav.plots import RUN_PLOT_FILES
     from telemetry.runfiles import is_tlog
 
-    if is_tlog(out):
-        files = [out.parent / f"{out.stem}.{name}" for name in _RUN_OUTPUTS]
-    else:
-        plots = out / "plots"
-        files = [out / name for name in _RUN_OUTPUTS]
-        if plots.is_dir():
-            files += [*sorted(plots.glob("*.png")), plots / "report.html"]
-    removed = []
-    for f in files:
-        if f.is_file():
-            f.unlink()
-            removed.append(str(f))
-    if not is_tlog(out) and (out / "plots").is_dir() and not any((out / "plots").iterdir()):
-        (out / "plots").rmdir()
-    return removed
+    est = out.with_suffix(".estimates.csv") if is_tlog(out) else out / "estimates.csv"
+    smoothed = smoothed_path(est)
+    files = [est, npz_path(est), nis_path(est), smoothed, npz_path(smoothed)]
+    if not is_tlog(out):
+        files += [out / "plots" / name for name in RUN_PLOT_FILES]
+    return files
+
+
+def _refuse_file_name_for_a_run(dst: str | Path) -> None:
+    """A run is a directory or ``NAME.tlog``: ``NAME.csv`` would become a directory."""
+    if Path(dst).suffix.lower() in (".csv", ".toml", ".npz"):
+        raise ValueError(
+            f"{dst}: a run is a directory (array.csv, gps.csv, config.toml) or NAME.tlog"
+        )
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -109,6 +99,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
             return 0
     if args.out is None and args.stream is None:
         raise ValueError("say where the run goes: --out DIR|NAME.tlog and/or --stream udpout:...")
+    if args.out is not None:
+        _refuse_file_name_for_a_run(args.out)
     if args.stream is not None:
         from telemetry.live import parse_endpoint
 
@@ -117,12 +109,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     with FractionBar("simulate") as bar:
         sim = simulate_flight(scn, args.run_index, progress=bar)
     where = []
-    removed: list[str] = []
+    removed = []
     if args.out is not None:
-        removed = _clear_earlier_outputs(Path(args.out))
         out = write_run(args.out, sim.samples, sim.fixes, sim.config)
         write_truth_csv(truth_path(out), sim.truth)
         where.append(str(out))
+        # read beside the new truth, an earlier flight's estimates were judged against a
+        # flight they never saw (`ngnav plot` reported a yaw RMS of 125 deg)
+        removed = [f for f in _earlier_outputs(out) if f.is_file()]
+        for f in removed:
+            f.unlink()
+        plots = out / "plots"
+        if removed and plots.is_dir() and not any(plots.iterdir()):
+            plots.rmdir()
     print(
         f"simulated {scn.name} run {args.run_index}: {sim.samples.t_s.shape[0]} array samples "
         f"({sim.samples.n_channels} channels), {len(sim.fixes)} GPS fixes, "
@@ -147,9 +146,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         f"{'on' if sim.config.carries_calibration_error else 'off'}"
     )
     if removed:
-        print(
-            f"removed {len(removed)} outputs of an earlier flight (estimates, figures) from {out}"
-        )
+        print(f"removed {len(removed)} outputs of an earlier flight (estimates, figures) at {out}")
     if args.stream is not None:
         from telemetry.inputs import input_frames
         from telemetry.live import play_frames
@@ -307,10 +304,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
     from telemetry.runfiles import read_run, truth_path, write_run
 
-    if Path(args.dst).suffix.lower() in (".csv", ".toml", ".npz"):
-        raise ValueError(
-            f"{args.dst}: a run is a directory (array.csv, gps.csv, config.toml) or NAME.tlog"
-        )
+    _refuse_file_name_for_a_run(args.dst)
     inp = read_run(args.src)
     out = write_run(args.dst, inp.samples, inp.fixes, inp.config)
     if truth_path(args.src).exists():

@@ -76,14 +76,6 @@ def parse_allow(items: list[str]) -> set[tuple[int, int]] | None:
     return out
 
 
-def print_counts(title: str, counts: dict[str, int], indent: str = "  ") -> None:
-    """A counter block of the stream's summary: the counters that are not zero, on one line
-    (none: no line; ``--json`` keeps every counter)."""
-    told = [f"{k} {v}" for k, v in counts.items() if v]
-    if told:
-        print(f"{indent}{title}: {', '.join(told)}")
-
-
 def cmd_stream(args: argparse.Namespace) -> int:
     """``ngnav stream``: estimate from a live UDP link, send MAVLink estimates."""
     from filters.output import write_estimates_csv
@@ -140,13 +132,12 @@ def cmd_stream(args: argparse.Namespace) -> int:
         print(
             f"  {st.datagrams} datagrams in, {sum(st.frames_sent.values())} frames out; {latency}"
         )
-        print_counts("input", st.counts)
-        print_counts("frames sent", st.frames_sent)
-        if st.result is not None:
-            from ngnav.cli.flight import count_lines
+        from ngnav.cli.flight import _print_counts, _print_reports
 
-            for line in count_lines(st.result.counts):
-                print(f"  {line}")
+        # the counters that are not zero (--json keeps every one)
+        _print_reports({"input": st.counts, "frames sent": st.frames_sent})
+        if st.result is not None:
+            _print_counts(st.result.counts)
             for ev in st.result.faults:
                 print(f"  channel fault: {ev.describe()}")
             for loss in st.result.track_losses:
