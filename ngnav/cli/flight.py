@@ -54,6 +54,14 @@ def _print_counts(counts: dict[str, int], indent: str = "  ") -> None:
         print(f"{indent}{line}")
 
 
+def default_estimates_path(run: Path) -> Path:
+    """Where ``ngnav run`` writes a run's estimates by default: ``RUN/estimates.csv``, or
+    ``NAME.estimates.csv`` beside ``NAME.tlog``."""
+    from telemetry.runfiles import is_tlog
+
+    return run.with_suffix(".estimates.csv") if is_tlog(run) else run / "estimates.csv"
+
+
 def _earlier_outputs(out: Path) -> list[Path]:
     """What ``ngnav run`` (its default estimates, with their NIS, NPZ and smoothed files) and
     ``ngnav plot`` (``plots/``) write for the run at ``out``, a directory or a tlog."""
@@ -61,7 +69,7 @@ def _earlier_outputs(out: Path) -> list[Path]:
     from ngnav.plots import RUN_PLOT_FILES
     from telemetry.runfiles import is_tlog
 
-    est = out.with_suffix(".estimates.csv") if is_tlog(out) else out / "estimates.csv"
+    est = default_estimates_path(out)
     smoothed = smoothed_path(est)
     files = [est, npz_path(est), nis_path(est), smoothed, npz_path(smoothed)]
     if not is_tlog(out):
@@ -179,7 +187,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.out:
         out = Path(args.out)
     else:
-        out = src.with_suffix(".estimates.csv") if is_tlog(src) else src / "estimates.csv"
+        out = default_estimates_path(src)
     if args.smooth and is_tlog(out):
         raise ValueError("--smooth writes CSV and NPZ estimates; give --out NAME.csv")
     if args.no_gps and (is_tlog(src) or is_tlog(out)):
