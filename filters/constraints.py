@@ -305,7 +305,7 @@ class ConstraintsMixin:
         nis, ok = self._gated_update(meas, self.gate1)
         if ok:
             self._model_last_t[axis] = self.t_s
-            self._curvature_sd_mps[:] = 0.0  # the velocity was measured
+            self._forget_curvature()  # the velocity was measured
         self._model_last_ok[axis] = ok
         if self.body_velocity_log is not None:
             self.body_velocity_log.append(rec._replace(accepted=ok))

@@ -388,6 +388,7 @@ class NavFilter(
         # 1-sigma NED velocity error of the force's second-order part since the last
         # velocity measurement (ProcessMixin._add_curvature_noise)
         self._curvature_sd_mps = np.zeros(3)
+        self._curvature_sd_m = np.zeros(3)
         # the hold starts at the vehicle models' first update (current_remainder_updates)
         self._handover_until = -np.inf
         self._handover_pending = self.handover_hold_s > 0.0

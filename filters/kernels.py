@@ -473,17 +473,36 @@ def force_curvature_variance(f_n: np.ndarray, p_att: np.ndarray) -> np.ndarray:
 
 @njit(cache=True)
 def add_curvature_noise(
-    p: np.ndarray, acc: np.ndarray, f_n: np.ndarray, t_s: float, att0: int, vel0: int
+    p: np.ndarray,
+    acc: np.ndarray,
+    pos: np.ndarray,
+    f_n: np.ndarray,
+    t_s: float,
+    att0: int,
+    vel0: int,
+    pos0: int,
 ) -> None:
     """Grow the force curvature's random constant over ``t_s`` s, in place
-    (``NavFilter._add_curvature_noise``): ``acc`` (3,) each NED axis's 1-sigma velocity
-    error from it, m/s, grows by ``sd(b) t_s`` and P's velocity variances by the
-    difference of the squares."""
+    (``NavFilter._add_curvature_noise``): ``acc`` (3,) and ``pos`` (3,) each NED axis's
+    1-sigma velocity and position errors from it, m/s and m. The velocity part grows by
+    ``sd(b) t_s``, the position part (moved by the transition's ``v t_s`` already) by half
+    that times ``t_s``; P's variances and their covariance grow by the change of these
+    fully correlated parts."""
     var_b = force_curvature_variance(f_n, np.ascontiguousarray(p[att0 : att0 + 3, att0 : att0 + 3]))
     for i in range(3):
-        new = acc[i] + math.sqrt(max(var_b[i], 0.0)) * t_s
-        p[vel0 + i, vel0 + i] += new * new - acc[i] * acc[i]
-        acc[i] = new
+        d = math.sqrt(max(var_b[i], 0.0)) * t_s
+        a = acc[i]
+        s = pos[i] + a * t_s
+        a_new = a + d
+        s_new = s + 0.5 * d * t_s
+        v, q = vel0 + i, pos0 + i
+        p[v, v] += a_new * a_new - a * a
+        p[q, q] += s_new * s_new - s * s
+        c = s_new * a_new - s * a
+        p[q, v] += c
+        p[v, q] += c
+        acc[i] = a_new
+        pos[i] = s_new
 
 
 @njit(cache=True)

@@ -361,8 +361,8 @@ class MeasurementsMixin:
             self._consec_vel_rejects = 0 if ok_v else self._consec_vel_rejects + 1
         if ok_p:
             self.t_last_position_fix = self.t_s
-        if ok_v:
-            self._curvature_sd_mps[:] = 0.0
+        if ok_p or ok_v:
+            self._forget_curvature()
         return GpsUpdateResult(
             _full(nis_p, pos_rows), _full(nis_v, vel_rows), ok_p, ok_v, nis_h, nis_vt
         )

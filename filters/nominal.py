@@ -228,7 +228,7 @@ class NominalMixin:
         self._consec_rejects = 0
         self._consec_vel_rejects = 0
         self.t_last_position_fix = self.t_s
-        self._curvature_sd_mps[:] = 0.0
+        self._forget_curvature()
         self.check_covariance("GPS reset")
 
     def set_heading(self, yaw_rad: float, sigma_rad: float) -> None:

@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from filters.algebra import force_curvature_variance
-from filters.state import ATT, VEL
+from filters.state import ATT, POS, VEL
 from tests.helpers import level_filter
 
 # tilt 6 and 8 deg, heading 25 deg, the north tilt correlated with the heading
@@ -56,22 +56,39 @@ def test_curvature_variance_is_the_quadratic_forms():
     assert np.all(np.abs(b.mean(axis=0) - mean) < 5.0 * np.sqrt(var / n))
 
 
-def test_filter_carries_the_curvature_as_a_constant_until_a_gps_velocity():
-    """In a level filter with the attitude covariance of a long coast, each block adds
-    ``(s + sd t)^2 - s^2`` to each velocity variance (``s`` the sigma so far), and an
-    accepted GPS velocity starts it from zero."""
+def test_filter_carries_the_curvature_as_a_constant_until_a_gps_fix():
+    """In a level filter with the attitude covariance of a long coast, blocks of the
+    transition (``p += v t``) and the curvature's noise leave, on top of the transition's
+    own, exactly a constant acceleration ``b`` of sigma ``sd``'s moments after ``T``:
+    velocity ``sd^2 T^2``, position ``sd^2 T^4 / 4``, their covariance ``sd^2 T^3 / 2``;
+    an accepted GPS fix starts it from zero."""
     nf, _, _ = level_filter()
     nf.P[ATT, ATT] = P_ATT
     f_n = np.array([0.0, 0.0, -9.80665])
     sd = np.sqrt(force_curvature_variance(f_n, P_ATT))
-    t = 0.02
-    before = np.diag(nf.P[VEL, VEL]).copy()
-    nf._add_curvature_noise(t, f_n)
-    nf._add_curvature_noise(t, f_n)
-    assert np.allclose(np.diag(nf.P[VEL, VEL]) - before, (2.0 * sd * t) ** 2, rtol=1e-12)
+    t, blocks = 0.02, 50
+    n = nf.P.shape[0]
+
+    def transition(dt: float) -> np.ndarray:
+        phi = np.eye(n)
+        phi[POS, VEL] = dt * np.eye(3)
+        return phi
+
+    phi_all = transition(t * blocks)
+    expected = phi_all @ nf.P @ phi_all.T
+    for _ in range(blocks):
+        phi = transition(t)
+        nf.P = phi @ nf.P @ phi.T
+        nf._add_curvature_noise(t, f_n)
+    big_t = t * blocks
+    expected[VEL, VEL] += np.diag(sd**2 * big_t**2)
+    expected[POS, POS] += np.diag(sd**2 * big_t**4 / 4.0)
+    expected[POS, VEL] += np.diag(sd**2 * big_t**3 / 2.0)
+    expected[VEL, POS] += np.diag(sd**2 * big_t**3 / 2.0)
+    assert np.allclose(nf.P, expected, rtol=1e-10, atol=1e-15)
     assert sd[2] > 0.1  # m/s^2: g |dtheta_h|^2 / 2 at these tilts
     nf.update_gps(nf.pos.copy(), nf.vel.copy(), np.full(3, 1.0), 0.1)
-    assert not np.any(nf._curvature_sd_mps)
+    assert not np.any(nf._curvature_sd_mps) and not np.any(nf._curvature_sd_m)
 
 
 def test_the_transitions_force_is_shrunk_by_the_tilts_uncertainty():
