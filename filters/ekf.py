@@ -385,8 +385,8 @@ class NavFilter(
         self.P = p
         self.x = np.zeros(self.layout.n)
         self.t_last_position_fix = self.t_s
-        # 1-sigma NED velocity error of the force's second-order part since the last
-        # velocity measurement (ProcessMixin._add_curvature_noise)
+        # 1-sigma NED velocity and position errors of the force's second-order part since
+        # the last position or velocity measurement (ProcessMixin._add_curvature_noise)
         self._curvature_sd_mps = np.zeros(3)
         self._curvature_sd_m = np.zeros(3)
         # the hold starts at the vehicle models' first update (current_remainder_updates)
