@@ -13,19 +13,25 @@ from filters import kernels
 from filters.state import ATT, RATE, VEL
 
 
-def shrink_to_size(x: np.ndarray, var: np.ndarray) -> np.ndarray:
+def shrink_to_size(x: np.ndarray, var: np.ndarray, clear_sigmas: float = 0.0) -> np.ndarray:
     """A noisy estimate for a Jacobian: each component to ``sign(x) sqrt(max(0, x^2 - var))``.
 
     ``x^2 - var`` is the unbiased estimate of the true component's square (``var`` the
     estimate's noise variance, (3,)). A Jacobian built from the estimate itself would
     take noise for motion and claim information the measurement does not hold
-    (errors in variables); where the component is within its noise it reads zero.
+    (errors in variables); where the component is within its noise it reads zero, and
+    where its unbiased size is within ``clear_sigmas`` sigmas of zero when that noise is
+    shared with the measurement's innovation (the sensor positions' angular acceleration:
+    ``filters.step``).
     """
     x = np.asarray(x, dtype=float)
     var = np.asarray(var, dtype=float)
     if x.shape != var.shape:
         raise ValueError(f"shrink_to_size: x {x.shape} and var {var.shape} differ")
-    return kernels.shrink(x, var)
+    out = kernels.shrink(x, var)
+    if clear_sigmas > 0.0:
+        out[out * out <= clear_sigmas**2 * var] = 0.0
+    return out
 
 
 def _product_derivatives(pairs: Sequence[Sequence[int]]) -> np.ndarray:

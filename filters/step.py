@@ -37,6 +37,10 @@ from filters.vehicle_model import (
 from ngnav.errors import LostTrackError
 from ngnav.rotation import dcm_from_quat
 
+#: How far (in its noise's sigmas) the angular acceleration the sensor positions' Jacobian
+#: reads must stand from zero to be read at all (see ``StepMixin._block``).
+WDOT_JACOBIAN_CLEAR_SIGMAS = 3.0
+
 
 class StepMixin:
     """The block's chain, and the noise the forecast and held samples add."""
@@ -88,8 +92,15 @@ class StepMixin:
             # attitude over-sure (docs/design.md, "the sensor positions' Jacobian").
             # The sensing-axis states read the specific force at each sensor, from the
             # same forecast (the last block's mean less the biases without one).
+            # Within WDOT_JACOBIAN_CLEAR_SIGMAS of its noise it reads zero: that noise is in
+            # the rate's error too (the rate integrates it), so the rate products'
+            # innovation and this Jacobian shared it and the states drifted (the lever arms
+            # 0.6-0.9 % long by uav-survey's end on a truth without mounting errors; notes,
+            # "The turns' forward-velocity error").
             wd_sg = self._wd_smooth if phi_hat is None else phi_hat[0:3]
-            wd_sg = shrink_to_size(wd_sg, self.wdot_jacobian_var * (1.0 / kk))
+            wd_sg = shrink_to_size(
+                wd_sg, self.wdot_jacobian_var * (1.0 / kk), WDOT_JACOBIAN_CLEAR_SIGMAS
+            )
             f_sg = self._last_mean[3:6] - nf.bias[3:6] if phi_hat is None else phi_hat[3:6]
             sg = nf.geometry_sg(f_sg, wd_sg, nf.w + 0.5 * kk * dt * wd_sg)
             if p_bound is not None:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from filters.algebra import force_curvature_variance
+from filters.algebra import force_curvature_variance, shrink_to_size
 from filters.state import ATT, POS, VEL
 from tests.helpers import level_filter
 
@@ -118,3 +118,17 @@ def test_the_transitions_force_is_shrunk_by_the_tilts_uncertainty():
     )
     want = np.sign(f_turn) * np.sqrt(f_turn**2 - var)
     np.testing.assert_allclose(nf.force_for_jacobian(f_turn), want, rtol=1e-12)
+
+
+def test_a_jacobians_motion_reads_zero_until_clear_of_its_noise():
+    """``shrink_to_size``: each component to its unbiased size ``sqrt(x^2 - var)`` with its
+    sign, zero within its noise, and with ``clear_sigmas`` zero until that size stands
+    ``clear_sigmas`` noise sigmas from zero (the sensor positions' angular acceleration,
+    whose noise the rate's error shares)."""
+    var = np.array([1.0, 1.0, 4.0, 1.0])
+    x = np.array([0.9, -2.0, 6.0, -3.5])
+    got = shrink_to_size(x, var)
+    assert np.array_equal(got, [0.0, -np.sqrt(3.0), np.sqrt(32.0), -np.sqrt(11.25)])
+    cleared = shrink_to_size(x, var, clear_sigmas=3.0)
+    # unbiased sizes 0, 1.73, 2.83 (sigma 2), 3.35: only the last is beyond 3 sigmas
+    assert np.array_equal(cleared, [0.0, 0.0, 0.0, -np.sqrt(11.25)])
