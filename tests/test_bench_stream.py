@@ -61,6 +61,33 @@ def test_bench_stream_samples_the_stream_process_memory():
     assert b["rss_slope_mib_per_h"] == b["rss_slope_mib_per_h"]  # a number, not NaN
 
 
+def test_bench_stream_prints_the_channel_faults_the_stream_found():
+    got = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ngnav.cli",
+            "bench-stream",
+            "--scenario",
+            "tactical",
+            "--set",
+            "run.rate_hz=200",
+            "--set",
+            'faults.inject=[{channel=6, kind="dead", start_s=20.0}]',
+            "--seconds",
+            "30",
+            "--speed",
+            "10",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert got.returncode == 0, got.stderr
+    line = next(x for x in got.stdout.splitlines() if "channel fault" in x)
+    assert line.strip().startswith("channel fault: channel 6 dead: detected 20.")
+    assert "not isolated" not in line
+
 def test_latency_histogram_percentiles_within_a_bin_of_the_exact_ones():
     import numpy as np
 

@@ -213,6 +213,13 @@ def cmd_bench_stream(args: argparse.Namespace) -> int:
         f"{f.get('gps fixes later than the fusion lag', 0)} fixes later than the fusion lag"
         + (f"; FAILED: {b.stream_summary['failure']}" if b.stream_summary["failure"] else "")
     )
+    from ngnav.records import FaultEvent, TrackLoss
+
+    for ev in b.stream_summary["faults"]:
+        ev = FaultEvent(**{**ev, "channels": tuple(ev["channels"])})
+        print(f"  channel fault: {ev.describe()}")
+    for loss in b.stream_summary["track_losses"]:
+        print(f"  track {TrackLoss(**loss).describe()}")
     if b.rss_mib:
         mib = [m for _, m in b.rss_mib]
         print(
