@@ -88,6 +88,7 @@ def test_bench_stream_prints_the_channel_faults_the_stream_found():
     assert line.strip().startswith("channel fault: channel 6 dead: detected 20.")
     assert "not isolated" not in line
 
+
 def test_latency_histogram_percentiles_within_a_bin_of_the_exact_ones():
     import numpy as np
 
