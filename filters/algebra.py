@@ -28,10 +28,7 @@ def shrink_to_size(x: np.ndarray, var: np.ndarray, clear_sigmas: float = 0.0) ->
     var = np.asarray(var, dtype=float)
     if x.shape != var.shape:
         raise ValueError(f"shrink_to_size: x {x.shape} and var {var.shape} differ")
-    out = kernels.shrink(x, var)
-    if clear_sigmas > 0.0:
-        out[out * out <= clear_sigmas**2 * var] = 0.0
-    return out
+    return kernels.shrink(x, var, clear_sigmas * clear_sigmas)
 
 
 def _product_derivatives(pairs: Sequence[Sequence[int]]) -> np.ndarray:

@@ -107,12 +107,14 @@ def _cross_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def shrink(x: np.ndarray, var: np.ndarray) -> np.ndarray:
-    """``sign(x) sqrt(max(0, x^2 - var))`` per component (``algebra.shrink_to_size``)."""
+def shrink(x: np.ndarray, var: np.ndarray, clear2: float = 0.0) -> np.ndarray:
+    """``sign(x) sqrt(x^2 - var)`` per component, zero where ``x^2 - var <= clear2 var``
+    (``algebra.shrink_to_size``; ``clear2`` its ``clear_sigmas`` squared)."""
     out = np.empty(x.shape[0])
     for i in range(x.shape[0]):
         xi = x[i]
-        out[i] = math.copysign(math.sqrt(max(xi * xi - var[i], 0.0)), xi) if xi != 0.0 else 0.0
+        d = xi * xi - var[i]
+        out[i] = math.copysign(math.sqrt(d), xi) if d > clear2 * var[i] and d > 0.0 else 0.0
     return out
 
 
