@@ -28,31 +28,17 @@ def test_a_longer_flight_repeats_the_manoeuvres_not_the_take_off():
     assert extended(scn, 10.0) is scn
 
 
-def test_bench_stream_samples_the_stream_process_memory():
-    got = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "ngnav.cli",
-            "bench-stream",
-            "--scenario",
-            "tactical",
-            "--set",
-            "run.rate_hz=200",
-            "--seconds",
-            "70",
-            "--speed",
-            "10",
-            "--rss-every",
-            "1",
-            "--json",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+def _bench_stream(*args: str) -> str:
+    """``ngnav bench-stream`` on 200 Hz `tactical` at 10x real time, as a user runs it."""
+    cmd = [sys.executable, "-m", "ngnav.cli", "bench-stream", "--scenario", "tactical"]
+    cmd += ["--set", "run.rate_hz=200", "--speed", "10", *args]
+    got = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert got.returncode == 0, got.stderr
-    b = json.loads(got.stdout)
+    return got.stdout
+
+
+def test_bench_stream_samples_the_stream_process_memory():
+    b = json.loads(_bench_stream("--seconds", "70", "--rss-every", "1", "--json"))
     assert b["flight_s"] >= 69.9  # beyond tactical's 60 s: its manoeuvres again
     assert b["epochs"] > 0 and b["estimate_frames_received"] > 0
     rss = b["rss_mib"]
@@ -62,29 +48,9 @@ def test_bench_stream_samples_the_stream_process_memory():
 
 
 def test_bench_stream_prints_the_channel_faults_the_stream_found():
-    got = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "ngnav.cli",
-            "bench-stream",
-            "--scenario",
-            "tactical",
-            "--set",
-            "run.rate_hz=200",
-            "--set",
-            'faults.inject=[{channel=6, kind="dead", start_s=20.0}]',
-            "--seconds",
-            "30",
-            "--speed",
-            "10",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert got.returncode == 0, got.stderr
-    line = next(x for x in got.stdout.splitlines() if "channel fault" in x)
+    dead = 'faults.inject=[{channel=6, kind="dead", start_s=20.0}]'
+    out = _bench_stream("--set", dead, "--seconds", "30")
+    line = next(x for x in out.splitlines() if "channel fault" in x)
     assert line.strip().startswith("channel fault: channel 6 dead: detected 20.")
     assert "not isolated" not in line
 
