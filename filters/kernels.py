@@ -114,7 +114,7 @@ def shrink(x: np.ndarray, var: np.ndarray, clear2: float = 0.0) -> np.ndarray:
     for i in range(x.shape[0]):
         xi = x[i]
         d = xi * xi - var[i]
-        out[i] = math.copysign(math.sqrt(d), xi) if d > clear2 * var[i] and d > 0.0 else 0.0
+        out[i] = math.copysign(math.sqrt(d), xi) if d > clear2 * var[i] else 0.0  # var >= 0
     return out
 
 
