@@ -14,6 +14,9 @@ liftoff_speed_mps }`` makes it the one the lift law asks for
 (:class:`ngnav.sim.flight.LiftLaw`): the aircraft type's law. ``[flight] lift_scatter
 = { alpha0_deg, k_m }`` gives how one aircraft of the type differs from it (1-sigma);
 each simulated run then flies its own, drawn from its run's generator.
+``[flight] rocking_rate_dps`` makes the body rock (1-sigma rate per axis, white at the
+array's rate; :mod:`ngnav.sim.rocking`): a bench's or a waiting vehicle's micro-motion,
+which the zero-rate update's sigma at rest (``rest.rate_sigma_dps``) declares.
 """
 
 from __future__ import annotations
@@ -158,6 +161,8 @@ class FlightScenario:
     #: Times the filter is told its track is lost (``[faults] lose_track_at_s``, s): the
     #: recovery's validation (:mod:`filters.recovery`).
     lose_track_at_s: tuple[float, ...] = ()
+    #: The body's rocking, 1-sigma rate per axis and array sample, deg/s (0: none).
+    rocking_rate_dps: float = 0.0
 
     def plan(self) -> FlightPlan:
         """The flight's bank, pitch, speed, yaw-rate and angle-of-attack profiles."""
@@ -258,7 +263,7 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
     if not isinstance(flight, dict) or "legs" not in flight:
         raise ValueError(f"{source}: missing [flight] with legs")
     starts = ("initial_speed_mps", "initial_aoa_deg", "initial_pitch_deg")
-    extra = sorted(set(flight) - {"legs", "lift", "lift_scatter", *starts})
+    extra = sorted(set(flight) - {"legs", "lift", "lift_scatter", "rocking_rate_dps", *starts})
     if extra:
         raise ValueError(f"{source}: unknown key flight.{extra[0]}")
     start_values = {}
@@ -267,6 +272,9 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ValueError(f"{source}: flight.{key}: expected a number")
         start_values[key] = float(value)
+    rocking = flight.get("rocking_rate_dps", 0.0)
+    if isinstance(rocking, bool) or not isinstance(rocking, int | float) or not rocking >= 0:
+        raise ValueError(f"{source}: flight.rocking_rate_dps: expected a number >= 0")
     legs = _legs(flight["legs"], source)
     for i, leg in enumerate(legs):
         if leg.aoa_deg is not None and not -30.0 < leg.aoa_deg < 30.0:
@@ -324,6 +332,7 @@ def load_flight(name_or_path: str, overrides: list[str] | None = None) -> Flight
         lift_scatter=scatter,
         faults=faults,
         lose_track_at_s=tuple(float(v) for v in sorted(losses)),
+        rocking_rate_dps=float(rocking),
         **parts,
     )
 

@@ -29,6 +29,7 @@ from ngnav.sim.faults import ChannelFault, inject_faults
 from ngnav.sim.flight import fly
 from ngnav.sim.flight_scenario import FlightScenario
 from ngnav.sim.gps import GpsReceiverModel
+from ngnav.sim.rocking import rock
 from ngnav.sim.sensors import AccelerometerSpec
 
 
@@ -194,6 +195,10 @@ def simulate_flight(
         # this run's aircraft: the type's lift law with its own rigging and loading
         plan = replace(plan, lift=plan.lift.drawn(*scn.lift_scatter, rng))
     truth = fly(plan, rate)
+    if scn.rocking_rate_dps > 0:
+        # its own stream: the run's other draws stay those of the still body
+        rocking_rng = np.random.default_rng([scn.run.seed, run_index, 2])
+        truth = rock(truth, float(np.deg2rad(scn.rocking_rate_dps)), rocking_rng)
     done(0.5)
     clean = real.outputs(truth.omega_dot_b_rps2, truth.f_b_mps2, truth.omega_b_rps)
     out, saturated, bias = spec.simulate(clean, rate, scale_error, rng)
