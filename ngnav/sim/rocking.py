@@ -20,8 +20,8 @@ in ``theta``:
 
 (``C = exp([theta x])``). The neglected terms are of order ``|theta| |theta_dot|`` and
 ``|theta_dot|^2``: for ``static``'s 1e-4 deg/s, ``|theta|`` stays below 1e-6 rad (4e-7 on
-run 0) and they below 1e-11 rad/s and rad/s^2. The body rotates about its origin, so position and
-velocity are unchanged.
+run 0), and the neglected terms below 1e-11 rad/s and rad/s^2. The body rotates about its
+origin, so position and velocity are unchanged.
 """
 
 from __future__ import annotations
@@ -61,8 +61,7 @@ def rocking_angles(
     if n % 2 == 0:
         spectrum[-1] = 0.0  # the Nyquist term's derivative vanishes on the samples
     omega = 2j * np.pi * np.fft.rfftfreq(n, 1.0 / rate_hz)[:, None]
-    safe = np.where(omega == 0.0, 1.0, omega)
-    theta = np.fft.irfft(np.where(omega == 0.0, 0.0, spectrum / safe), n, axis=0)
+    theta = np.fft.irfft(spectrum / np.where(omega == 0.0, 1.0, omega), n, axis=0)
     return theta, np.fft.irfft(spectrum, n, axis=0), np.fft.irfft(spectrum * omega, n, axis=0)
 
 
