@@ -35,7 +35,6 @@ later if a sample test names one of its channels.
 
 from __future__ import annotations
 
-import math
 import warnings
 
 import numpy as np
@@ -220,20 +219,20 @@ class ChannelMonitor:
     # ----------------------------------------------------------------- parity
     def observe_parity(self, t_s: float, innovation: np.ndarray, cov: np.ndarray) -> None:
         """Run the parity CUSUM on one rate-product innovation (nq,) and its covariance."""
-        r = np.asarray(innovation, dtype=float)
-        if not self.groups or not math.isfinite(r.sum()):  # a finite sum: all finite
+        if not self.groups:
             return
         c = self._cusum
-        try:
-            top = kernels.parity_cusum(r, cov, self._g_sig, c, CUSUM_K)
-        except np.linalg.LinAlgError:
-            return
-        if top.max() <= CUSUM_H:
-            return
         # an offset on one channel moves every group whose signature is not orthogonal
         # to its own, its own the fastest (Cauchy-Schwarz in the S^-1 metric): the
         # largest statistic names the group, and the CUSUMs start again
-        gi = int(np.argmax(top))
+        try:
+            gi = kernels.parity_cusum(
+                np.asarray(innovation, dtype=float), cov, self._g_sig, c, CUSUM_K, CUSUM_H
+            )
+        except np.linalg.LinAlgError:
+            return
+        if gi < 0:
+            return
         c[:] = 0.0
         if not self._parity.any():
             self._parity[gi] = True

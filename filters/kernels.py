@@ -891,22 +891,9 @@ def innovation_cov(h: np.ndarray, p: np.ndarray, r: np.ndarray, cross: np.ndarra
 
 
 @njit(cache=True)
-def augment(x: np.ndarray, p: np.ndarray, z_dim: int, m: np.ndarray, r: np.ndarray, h: np.ndarray):
-    """The state augmented with a measurement's noise ``v`` (``updates.update_correlated``):
-    ``x_a = [x, 0]``, ``P_a = [[P, M], [M^T, R]]``, ``H_a = [H, I]`` and a zero R."""
-    n = x.shape[0]
-    xa = np.zeros(n + z_dim)
-    xa[:n] = x
-    pa = np.empty((n + z_dim, n + z_dim))
-    pa[:n, :n] = p
-    pa[:n, n:] = m
-    pa[n:, :n] = m.T
-    pa[n:, n:] = r
-    ha = np.zeros((z_dim, n + z_dim))
-    ha[:, :n] = h
-    for i in range(z_dim):
-        ha[i, n + i] = 1.0
-    return xa, pa, ha, np.zeros((z_dim, z_dim))
+def solved_quadratic(y: np.ndarray, s: np.ndarray) -> float:
+    """``y^T S^-1 y`` (``y`` (m,), ``S`` (m, m) nonsingular) by one LAPACK solve."""
+    return float(y @ np.linalg.solve(np.ascontiguousarray(s), np.ascontiguousarray(y)))
 
 
 @njit(cache=True)
@@ -1051,19 +1038,29 @@ def column_median_squares(win: np.ndarray) -> np.ndarray:
 
 @njit(cache=True)
 def parity_cusum(
-    r: np.ndarray, cov: np.ndarray, g_sig: np.ndarray, cusum: np.ndarray, allowance: float
-) -> np.ndarray:
+    r: np.ndarray,
+    cov: np.ndarray,
+    g_sig: np.ndarray,
+    cusum: np.ndarray,
+    allowance: float,
+    threshold: float,
+) -> int:
     """One step of the parity CUSUMs (``faults.ChannelMonitor.observe_parity``), in place.
 
     ``r`` (nq,) the rate products' innovation, ``cov`` (nq, nq) its covariance ``S``,
     ``g_sig`` (G, nq) the channel groups' signatures ``s_g``; each group's normalised
     projection ``s_g' S^-1 r / sqrt(s_g' S^-1 s_g)`` feeds its two one-sided CUSUMs
-    ``cusum`` (G, 2). Returns each group's larger statistic (G,).
+    ``cusum`` (G, 2). Returns the group whose larger statistic is the largest if that
+    passes ``threshold`` (the first such on a tie), else -1; a non-finite ``r`` changes
+    nothing (-1).
     """
+    for i in range(r.shape[0]):
+        if not np.isfinite(r[i]):
+            return -1
     w = np.linalg.solve(np.ascontiguousarray(cov), np.ascontiguousarray(g_sig.T))  # (nq, G)
-    ng = g_sig.shape[0]
-    top = np.empty(ng)
-    for g in range(ng):
+    best = -1
+    best_top = threshold
+    for g in range(g_sig.shape[0]):
         ss = 0.0
         rw = 0.0
         for i in range(r.shape[0]):
@@ -1072,5 +1069,7 @@ def parity_cusum(
         z = rw / math.sqrt(max(ss, 1e-300))
         cusum[g, 0] = max(0.0, cusum[g, 0] + z - allowance)
         cusum[g, 1] = max(0.0, cusum[g, 1] - z - allowance)
-        top[g] = max(cusum[g, 0], cusum[g, 1])
-    return top
+        top = max(cusum[g, 0], cusum[g, 1])
+        if top > best_top:
+            best, best_top = g, top
+    return best

@@ -2,16 +2,19 @@
 
 :class:`Measurement` is what every measurement model gives the filter: ``(z, H, R)``
 and, where there is one, the noise's correlation with the propagation.
-:func:`update_correlated` is filterpy's ``update`` on the state augmented with the
-measurement noise, for noise correlated with the prior's error; :func:`quadratic_form`
+:func:`update_correlated` is filterpy's own correlated-noise update
+(``KalmanFilter.update_correlated``), for noise correlated with the prior's error;
+:func:`quadratic_form`
 is the NIS ``y^T S^-1 y`` the gates test.
 """
 
 from __future__ import annotations
 
+import threading
 from typing import NamedTuple
 
 import numpy as np
+from filterpy.kalman import KalmanFilter
 from filterpy.kalman import update as kf_update
 
 from filters import kernels
@@ -52,6 +55,9 @@ class Measurement(NamedTuple):
         return Measurement(self.z[rows], self.H[rows], self.R[np.ix_(rows, rows)], cross)
 
 
+_engines = threading.local()  # per thread: {(n, m): KalmanFilter}, holding nothing between calls
+
+
 def update_correlated(
     x: np.ndarray,
     p: np.ndarray,
@@ -64,25 +70,33 @@ def update_correlated(
 
     As filterpy's ``update(x, P, z, R, H)`` (residual ``z - H x``), but with
     ``m`` (n, nz) = ``E[dx v^T]``, the prior error's covariance with the noise (here:
-    the propagation noise of the block the measurement was made over). filterpy's
-    update runs on the state augmented with ``v`` (covariance ``[[P, M], [M^T, R]]``,
-    ``H_a = [H, I]``, no further noise), which gives the correlated-noise filter
-    (Simon, *Optimal State Estimation*, 7.1): ``S = H P H^T + H M + M^T H^T + R``,
-    ``K = (P H^T + M) S^-1``, ``P+ = P - K (H P + M^T)``; the noise rows are dropped.
-    With ``m`` None (independent noise) it is filterpy's plain update.
+    the propagation noise of the block the measurement was made over): filterpy's
+    ``KalmanFilter.update_correlated`` (Simon, *Optimal State Estimation*, 7.1):
+    ``S = H P H^T + H M + M^T H^T + R``, ``K = (P H^T + M) S^-1``,
+    ``P+ = P - K (H P + M^T)``. With ``m`` None (independent noise) it is filterpy's
+    plain update. (Its ``P+`` is not the Joseph form: the filter symmetrises P in the
+    reset that follows every update, :func:`filters.kernels.reset_rows`.)
     """
     if m is None:
         return kf_update(x, p, z, r, h)
-    n = x.shape[0]
-    xa, pa, ha, ra = kernels.augment(x, p, z.shape[0], m, r, h)
-    xa, pa = kf_update(xa, pa, z, ra, ha)
-    return xa[:n], pa[:n, :n]
+    n, nz = x.shape[0], z.shape[0]
+    cache = getattr(_engines, "filters", None)
+    if cache is None:
+        cache = _engines.filters = {}
+    kf = cache.get((n, nz))
+    if kf is None:
+        kf = cache[(n, nz)] = KalmanFilter(dim_x=n, dim_z=nz)
+    kf.x, kf.P, kf.M = x, p, m
+    kf.update_correlated(z, r, h)
+    x_new, p_new = kf.x, kf.P
+    kf.x = kf.P = kf.M = None  # hold no caller's arrays
+    return x_new, p_new
 
 
 def quadratic_form(y: np.ndarray, s: np.ndarray) -> float:
     """``y^T S^-1 y`` for a symmetric positive definite S (closed form for 3 x 3)."""
     if y.shape[0] != 3:
-        return float(y @ np.linalg.solve(s, y))
+        return kernels.solved_quadratic(np.asarray(y, dtype=float), np.asarray(s, dtype=float))
     (a, b, c), (_, d, e), (_, _, f) = s.tolist()
     # adjugate of the symmetric 3 x 3 matrix
     ia, ib, ic = d * f - e * e, c * e - b * f, b * e - c * d

@@ -813,11 +813,11 @@ def test_blend_remainder_matches_sampled_speed_errors(speed_mps, speed_sigma_mps
     assert abs(got - want) < 4 * se + 1e-3 * want
 
 
-def test_correlated_update_is_filterpys_correlated_filter():
-    """update_correlated (filterpy's update on the noise-augmented state) equals filterpy's
-    own KalmanFilter.update_correlated, the textbook formulas, for random SPD inputs."""
-    from filterpy.kalman import KalmanFilter
-
+def test_correlated_update_is_the_noise_augmented_states_update():
+    """update_correlated (filterpy's KalmanFilter.update_correlated) equals, for random SPD
+    inputs, two exact references built another way: filterpy's plain (Joseph) update on the
+    state augmented with the noise (``[[P, M], [M^T, R]]``, ``H_a = [H, I]``, zero R), and
+    the Gaussian conditional of ``dx`` on ``z`` from the joint covariance of ``[dx; v]``."""
     from filters.updates import update_correlated
 
     rng = np.random.default_rng(11)
@@ -828,12 +828,15 @@ def test_correlated_update_is_filterpys_correlated_filter():
         p, m, r = joint[:n, :n], joint[:n, n:], joint[n:, n:]
         h = rng.normal(size=(nz, n))
         x, z = rng.normal(size=n), rng.normal(size=nz)
-        kf = KalmanFilter(dim_x=n, dim_z=nz)
-        kf.x, kf.P, kf.M = x.copy(), p.copy(), m.copy()
-        kf.update_correlated(z, r, h)
         x2, p2 = update_correlated(x, p, z, r, h, m)
-        np.testing.assert_allclose(x2, kf.x, rtol=0, atol=1e-10)
-        np.testing.assert_allclose(p2, kf.P, rtol=0, atol=1e-10)
+        h_a = np.hstack([h, np.eye(nz)])
+        xa, pa = kf_update(np.r_[x, np.zeros(nz)], joint, z, np.zeros((nz, nz)), h_a)
+        np.testing.assert_allclose(x2, xa[:n], rtol=0, atol=1e-10)
+        np.testing.assert_allclose(p2, pa[:n, :n], rtol=0, atol=1e-10)
+        c_xz = joint[:n] @ h_a.T  # cov(dx, z) = P H^T + M
+        s = h_a @ joint @ h_a.T
+        np.testing.assert_allclose(x2, x + c_xz @ np.linalg.solve(s, z - h @ x), atol=1e-10)
+        np.testing.assert_allclose(p2, p - c_xz @ np.linalg.solve(s, c_xz.T), atol=1e-10)
         # and it differs from the update that ignores M (the test can tell them apart)
         _, p0 = kf_update(x, p, z, r, h)
         assert np.abs(p0 - p2).max() > 1e-3
