@@ -371,19 +371,29 @@ def reset_rows(
     velocity and attitude columns (``algebra.apply_reset_jacobian``)."""
     out = p.copy()
     n = p.shape[0]
-    a = slice(att0, att0 + 3)
-    v = slice(vel0, vel0 + 3)
     body = gvv.shape[0] > 0
-    rows_t = np.ascontiguousarray(p[a, :])
-    if body:
-        rows_v = np.ascontiguousarray(p[v, :])
-        out[v, :] = gvv @ rows_v + gvt @ rows_t
-    out[a, :] = ga @ rows_t
-    cols_t = np.ascontiguousarray(out[:, a])
-    if body:
-        cols_v = np.ascontiguousarray(out[:, v])
-        out[:, v] = cols_v @ gvv.T + cols_t @ gvt.T
-    out[:, a] = cols_t @ ga.T
+    # G's rows, then its columns, on three rows/columns each: loops (a BLAS call costs more
+    # than these 3 x 3 x n products)
+    for j in range(n):
+        t0, t1, t2 = p[att0, j], p[att0 + 1, j], p[att0 + 2, j]
+        if body:
+            v0, v1, v2 = p[vel0, j], p[vel0 + 1, j], p[vel0 + 2, j]
+            for i in range(3):
+                out[vel0 + i, j] = (gvv[i, 0] * v0 + gvv[i, 1] * v1 + gvv[i, 2] * v2) + (
+                    gvt[i, 0] * t0 + gvt[i, 1] * t1 + gvt[i, 2] * t2
+                )
+        for i in range(3):
+            out[att0 + i, j] = ga[i, 0] * t0 + ga[i, 1] * t1 + ga[i, 2] * t2
+    for j in range(n):
+        t0, t1, t2 = out[j, att0], out[j, att0 + 1], out[j, att0 + 2]
+        if body:
+            v0, v1, v2 = out[j, vel0], out[j, vel0 + 1], out[j, vel0 + 2]
+            for i in range(3):
+                out[j, vel0 + i] = (v0 * gvv[i, 0] + v1 * gvv[i, 1] + v2 * gvv[i, 2]) + (
+                    t0 * gvt[i, 0] + t1 * gvt[i, 1] + t2 * gvt[i, 2]
+                )
+        for i in range(3):
+            out[j, att0 + i] = t0 * ga[i, 0] + t1 * ga[i, 1] + t2 * ga[i, 2]
     for i in range(n):
         for j in range(i + 1, n):
             s = 0.5 * (out[i, j] + out[j, i])
@@ -888,6 +898,13 @@ def innovation_cov(h: np.ndarray, p: np.ndarray, r: np.ndarray, cross: np.ndarra
         hm = h @ np.ascontiguousarray(cross)
         s += hm + hm.T
     return s
+
+
+@njit(cache=True)
+def inverse(a: np.ndarray) -> np.ndarray:
+    """``a^-1`` (m, m), LAPACK's as numpy's: filterpy's ``KalmanFilter.inv`` for the small
+    innovation covariances (numpy's call costs more than the inversion)."""
+    return np.linalg.inv(np.ascontiguousarray(a))
 
 
 @njit(cache=True)

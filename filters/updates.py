@@ -86,6 +86,7 @@ def update_correlated(
     kf = cache.get((n, nz))
     if kf is None:
         kf = cache[(n, nz)] = KalmanFilter(dim_x=n, dim_z=nz)
+        kf.inv = kernels.inverse
     kf.x, kf.P, kf.M = x, p, m
     kf.update_correlated(z, r, h)
     x_new, p_new = kf.x, kf.P
