@@ -7,9 +7,11 @@ compensation, nominal propagation, filter prediction, the rate measurement
 and the GPS updates: everything a recorded run goes through except file
 reading. Beside it, in the same process and on the same core, it times a
 *bare* filterpy loop with the same state size and the same number of
-predictions and updates of each size, the vehicle models' and the rest's included
-(random but fixed F, Q, H, R): the floor set by
-filterpy itself. Wall-clock figures on shared machines are noisy: the median
+predictions and updates of each size and kind, the vehicle models' and the rest's
+included (random but fixed F, Q, H, R): the floor set by filterpy itself. The rate
+update is the pipeline's, filterpy's correlated-noise update
+(:func:`filters.updates.update_correlated`, with a fixed cross-covariance); the others
+are filterpy's plain ``update``. Wall-clock figures on shared machines are noisy: the median
 of several repeats is reported, and the ratio of the two is the figure to
 compare between machines. The repeats alternate (pipeline, bare loop,
 pipeline, ...) so that both see the same machine load, and the ratio is the
@@ -27,6 +29,7 @@ from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 
 from filters.pipeline import run_filter
+from filters.updates import update_correlated
 from ngnav.bench import _pin_one_core
 from ngnav.records import ArraySamples, GpsFixes
 from ngnav.sim.flight_scenario import FlightScenario
@@ -122,9 +125,10 @@ def bare_loop(
     seed: int = 0,
 ) -> float:
     """Seconds for filterpy alone with the pipeline's measurement counts: ``n_blocks``
-    predictions and rate updates, two 3-D updates per fix (position, velocity), ``n_scalar``
-    1-D updates (the vehicle models) and ``n_rest`` 3-D ones (the zero rate at rest), each
-    kind spread evenly over the blocks."""
+    predictions and rate updates (correlated with the propagation, as the pipeline's), two
+    3-D updates per fix (position, velocity), ``n_scalar`` 1-D updates (the vehicle models)
+    and ``n_rest`` 3-D ones (the zero rate at rest), each kind spread evenly over the
+    blocks."""
     rng = np.random.default_rng(seed)
     f = np.eye(n_state) + 0.01 * rng.normal(size=(n_state, n_state))
     q = np.eye(n_state) * 1e-6
@@ -132,6 +136,9 @@ def bare_loop(
     h_3 = rng.normal(size=(3, n_state))
     h_1 = rng.normal(size=(1, n_state))
     r_rate = np.eye(n_rate)
+    # the noise's cross-covariance: small enough that P stays positive definite (at 1e-2
+    # this P, tied to the same H at every block, went indefinite)
+    m_rate = 1e-4 * rng.normal(size=(n_state, n_rate))
     r_3 = np.eye(3)
     r_1 = np.eye(1)
     x = np.zeros(n_state)
@@ -142,7 +149,7 @@ def bare_loop(
     t0 = time.perf_counter()
     for b in range(n_blocks):
         x, p = kf_predict(x, p, f, q)
-        x, p = kf_update(x, p, np.zeros(n_rate), r_rate, h_rate)
+        x, p = update_correlated(x, p, np.zeros(n_rate), r_rate, h_rate, m_rate)
         for _ in range(fixes[b]):
             x, p = kf_update(x, p, np.zeros(3), r_3, h_3)
             x, p = kf_update(x, p, np.zeros(3), r_3, h_3)

@@ -59,10 +59,14 @@ class ConstraintsMixin:
         blocks back, whose noise is independent of the predicted angle's (equal to the
         current one under a steady load).
         """
+        return kernels.aoa_jacobian(*self._aoa_jacobian_args(vel_ned_mps))
+
+    def _aoa_jacobian_args(self, vel_ned_mps: np.ndarray) -> tuple:
+        """:func:`filters.kernels.aoa_jacobian`'s arguments at the velocity ``vel_ned_mps``."""
         lay = self.layout
         geo = lay.n_dr or lay.n_cal
         sg_f = self._lift_sg_f if geo and self._lift_sg_f is not None else kernels.ABSENT
-        return kernels.aoa_jacobian(
+        return (
             lay.n,
             lay.aoa.start,
             lay.n_aoa,
@@ -84,9 +88,12 @@ class ConstraintsMixin:
         """1-sigma of :attr:`aoa`, rad: :meth:`aoa_jacobian`'s linear part, the lift-off
         blend's beyond it (:meth:`blend_remainder_var`) and the load's noise
         (:meth:`set_load`); 0 without the state."""
-        j = self.aoa_jacobian(self.vel)
         lift = self._unblended_aoa()
-        var = j @ self.P @ j + lift * lift * self.blend_remainder_var() + self._load_angle_var()
+        var = (
+            kernels.aoa_linear_var(self.P, *self._aoa_jacobian_args(self.vel))
+            + lift * lift * self.blend_remainder_var()
+            + self._load_angle_var()
+        )
         return float(np.sqrt(var))
 
     def _load_angle_var(self) -> float:

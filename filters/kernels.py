@@ -962,6 +962,22 @@ def aoa_jacobian(
     return j
 
 
+@njit(cache=True)
+def aoa_linear_var(p: np.ndarray, *jacobian_args) -> float:
+    """``j P j`` for :func:`aoa_jacobian`'s ``j`` (its arguments follow ``p`` (n, n)): the
+    angle of attack's variance through its Jacobian (``NavFilter.aoa_sigma``)."""
+    j = aoa_jacobian(*jacobian_args)
+    n = j.shape[0]
+    var = 0.0
+    for a in range(n):
+        if j[a] != 0.0:
+            row = 0.0
+            for b in range(n):
+                row += p[a, b] * j[b]
+            var += j[a] * row
+    return var
+
+
 # -------- the covariance check and the channels' health tests
 
 

@@ -80,6 +80,7 @@ vehicle flying along its body axis keeps. Present when ``aoa_prior_sigma_deg`` >
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 from ngnav.records import NAV_BLOCKS
 
@@ -120,7 +121,7 @@ class StateLayout:
     biases, ``n_dr`` sensor-position states, ``n_cal`` sensing-axis states and ``n_aoa``
     (0-2) angle-of-attack states.
 
-    Every slice comes from :attr:`blocks`, the one ordered declaration.
+    Every slice comes from :attr:`blocks`, the one ordered declaration (each computed once).
     """
 
     nq: int
@@ -145,32 +146,32 @@ class StateLayout:
             ("aoa", self.n_aoa),
         )
 
-    @property
+    @cached_property
     def n(self) -> int:
         """Total error-state size."""
         return self._slices["aoa"].stop
 
-    @property
+    @cached_property
     def dr(self) -> slice:
         """The sensor-position error block (3N or empty)."""
         return self._slices["dr"]
 
-    @property
+    @cached_property
     def cal(self) -> slice:
         """The calibration's residual sensing-axis errors ``dg_i`` (3N or empty)."""
         return self._slices["cal"]
 
-    @property
+    @cached_property
     def geometry(self) -> slice:
         """``DR`` and ``CAL`` together: the states the features read through ``sg``."""
         return slice(self._slices["dr"].start, self._slices["cal"].stop)
 
-    @property
+    @cached_property
     def aoa(self) -> slice:
         """The angle-of-attack block (0, 1 or 2 states)."""
         return self._slices["aoa"]
 
-    @property
+    @cached_property
     def bias(self) -> slice:
         """All bias states (angular acceleration, force, quadratic), in solve-column order."""
         return slice(B_WDOT.start, self._slices["b_quad"].stop)
