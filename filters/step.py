@@ -199,13 +199,12 @@ class StepMixin:
             row = window
         h = self._hist[row]
         h[0:3] = nf.w
-        h[3:9] = self._last_mean[0:6] - nf.bias[0:6]
+        mean6 = self._last_mean[0:6] - nf.bias[0:6]  # the block's [wdot, f], biases removed
+        h[3:9] = mean6
         self._h_n = row + 1
         if rest is not None:
             rest.observe_block(nf.t_s, self._last_mean[0:6], n_ok)
-        self._wd_smooth += self._smooth_gain * (
-            self._last_mean[0:3] - nf.bias[0:3] - self._wd_smooth
-        )
+        self._wd_smooth += self._smooth_gain * (mean6[0:3] - self._wd_smooth)
         if nf.layout.n_aoa:
             # the block mean lags the block end by (k - 1) / 2 samples: extrapolate it
             # there (load_extrapolation_weights)
@@ -214,7 +213,7 @@ class StepMixin:
             # (its noise: the block means' feature_cov / k, as the weights combine them)
             # (with sensor-position states the load, as the propagation, loses S G dr_hat,
             # and the angle's Jacobian sees dr through it)
-            f_mean = self._last_mean[3:6] - nf.bias[3:6]
+            f_mean = mean6[3:6]
             sg_f = None
             if sg is not None:
                 sg_f = sg[3:6]
