@@ -338,9 +338,7 @@ class ConstraintsMixin:
             # a GPS velocity or a vehicle model just failed its gate: P's attitude is in
             # doubt, and the body-frame error would fuse through it
             return False
-        p, ia = self.P, ATT.start
-        curv = 0.5 * self._speed() * float(p[ia, ia] + p[ia + 1, ia + 1] + p[ia + 2, ia + 2])
-        return curv <= BODY_FRAME_MAX_CURVATURE_MPS
+        return kernels.attitude_curvature(self.P, self.vel) <= BODY_FRAME_MAX_CURVATURE_MPS
 
     def velocity_curvature(self) -> tuple[np.ndarray, np.ndarray]:
         """Mean (3,) and covariance (3, 3) of the NED velocity's second-order part, m/s

@@ -329,6 +329,14 @@ def inject_and_reset(q: np.ndarray, v_old: np.ndarray, dx: np.ndarray, p: np.nda
 
 
 @njit(cache=True)
+def attitude_curvature(p: np.ndarray, v: np.ndarray) -> float:
+    """``|v| tr(P_att) / 2`` (m/s): the size of the NED velocity's second-order part under
+    the attitude's uncertainty (``NavFilter.in_body_frame``)."""
+    speed = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    return 0.5 * speed * (p[_ATT, _ATT] + p[_ATT + 1, _ATT + 1] + p[_ATT + 2, _ATT + 2])
+
+
+@njit(cache=True)
 def symmetrised(p: np.ndarray) -> np.ndarray:
     """``(P + P^T) / 2`` (n, n), a new array."""
     n = p.shape[0]
