@@ -842,6 +842,55 @@ def test_correlated_update_is_the_noise_augmented_states_update():
         assert np.abs(p0 - p2).max() > 1e-3
 
 
+def test_the_reset_is_the_dense_jacobians_product():
+    """``apply_reset_jacobian`` (the compiled row and column loops) equals ``G P G^T`` with
+    ``G`` written out dense: the attitude rows ``ga`` and, body-style, the velocity rows
+    ``[gvv, gvt]`` on the velocity and attitude columns; symmetric."""
+    from filters.algebra import (
+        apply_reset_jacobian,
+        attitude_reset_jacobian,
+        body_velocity_reset_jacobian,
+    )
+
+    rng = np.random.default_rng(5)
+    n = 50
+    for body in (False, True):
+        a = rng.normal(size=(n, n))
+        p = a @ a.T + np.eye(n)
+        dth, dv, v = rng.normal(0, 0.05, 3), rng.normal(0, 0.5, 3), rng.normal(0, 30.0, 3)
+        ga = attitude_reset_jacobian(dth)
+        g = np.eye(n)
+        g[ATT, ATT] = ga
+        if body:
+            gvv, gvt = body_velocity_reset_jacobian(dth, dv, v)
+            g[VEL, VEL] = gvv
+            g[VEL, ATT] = gvt
+            got = apply_reset_jacobian(p, ga, gvv, gvt)
+        else:
+            got = apply_reset_jacobian(p, ga)
+        want = g @ p @ g.T
+        np.testing.assert_allclose(got, 0.5 * (want + want.T), rtol=1e-12, atol=1e-12)
+        assert np.array_equal(got, got.T)
+
+
+def test_the_angle_of_attacks_linear_variance_is_j_p_j():
+    """``kernels.aoa_linear_var`` is ``j P j`` for ``kernels.aoa_jacobian``'s ``j``."""
+    from filters import kernels
+
+    rng = np.random.default_rng(6)
+    n, aoa0, bias0, dr0 = 53, 51, 12, 24
+    a = rng.normal(size=(n, n))
+    p = a @ a.T
+    args = (
+        n, aoa0, 2, 0.8, 0.3, np.array([60.0, 3.0, -2.0]), 0.05, 0.04, 0.2,
+        np.array([0.1, 0.0, -0.99]), rng.normal(size=(3, 12)), bias0, rng.normal(size=(3, 27)),
+        dr0,
+    )  # fmt: skip
+    j = kernels.aoa_jacobian(*args)
+    assert np.count_nonzero(j) > 10  # the law, velocity, bias and position columns
+    assert kernels.aoa_linear_var(p, *args) == pytest.approx(j @ p @ j, rel=1e-12)
+
+
 def test_rate_noise_cross_is_the_propagations_covariance_with_the_quad_noise():
     """Monte Carlo (fixed seed): the errors one propagated block leaves (true - estimate, with
     feature noise drawn from the solver's covariance) against the mean of the same samples'
