@@ -4,8 +4,7 @@
 and, where there is one, the noise's correlation with the propagation.
 :func:`update_correlated` is filterpy's own correlated-noise update
 (``KalmanFilter.update_correlated``), for noise correlated with the prior's error;
-:func:`quadratic_form`
-is the NIS ``y^T S^-1 y`` the gates test.
+:func:`quadratic_form` is the NIS ``y^T S^-1 y`` the gates test.
 """
 
 from __future__ import annotations
@@ -55,7 +54,14 @@ class Measurement(NamedTuple):
         return Measurement(self.z[rows], self.H[rows], self.R[np.ix_(rows, rows)], cross)
 
 
-_engines = threading.local()  # per thread: {(n, m): KalmanFilter}, holding nothing between calls
+class _Engines(threading.local):
+    """Per thread, one filterpy ``KalmanFilter`` per ``(n, m)``, holding nothing between calls."""
+
+    def __init__(self) -> None:
+        self.by_size: dict[tuple[int, int], KalmanFilter] = {}
+
+
+_engines = _Engines()
 
 
 def update_correlated(
@@ -79,13 +85,10 @@ def update_correlated(
     """
     if m is None:
         return kf_update(x, p, z, r, h)
-    n, nz = x.shape[0], z.shape[0]
-    cache = getattr(_engines, "filters", None)
-    if cache is None:
-        cache = _engines.filters = {}
-    kf = cache.get((n, nz))
+    size = (x.shape[0], z.shape[0])
+    kf = _engines.by_size.get(size)
     if kf is None:
-        kf = cache[(n, nz)] = KalmanFilter(dim_x=n, dim_z=nz)
+        kf = _engines.by_size[size] = KalmanFilter(dim_x=size[0], dim_z=size[1])
         kf.inv = kernels.inverse
     kf.x, kf.P, kf.M = x, p, m
     kf.update_correlated(z, r, h)
