@@ -319,13 +319,60 @@ def inject(q: np.ndarray, v_old: np.ndarray, dth: np.ndarray, dv: np.ndarray, bo
 
 
 @njit(cache=True)
-def inject_and_reset(q: np.ndarray, v_old: np.ndarray, dx: np.ndarray, p: np.ndarray, body: bool):
-    """:func:`inject` of the error state ``dx`` (n,) and its reset ``G P G^T``
-    (:func:`reset_rows`) in one call (``NavFilter._inject``); returns ``q``, the velocity,
-    the new P and the Jacobian's rows ``ga``, ``gvv``, ``gvt`` (for the smoother's clone)."""
+def inject_error(
+    dx: np.ndarray,
+    p: np.ndarray,
+    q: np.ndarray,
+    pos: np.ndarray,
+    vel: np.ndarray,
+    w: np.ndarray,
+    bias: np.ndarray,
+    dr: np.ndarray,
+    dg: np.ndarray,
+    aoa_b: float,
+    aoa_k: float,
+    offsets: tuple,
+    body_allowed: bool,
+    max_frame_mps: float,
+    max_inject_mps: float,
+    g_rows: np.ndarray,
+):
+    """The error state ``dx`` (n,) folded into the nominal state, and P's reset
+    (``NavFilter._inject``, which says why).
+
+    ``offsets`` holds the first columns of the biases, the sensor positions, the sensing
+    axes and the angle-of-attack states and how many of the last there are. The correction
+    is body-style (:func:`inject`) when ``body_allowed`` (the velocity error may be in the
+    body frame), the attitude's curvature of the velocity (:func:`attitude_curvature`) is
+    at most ``max_frame_mps`` and the correction's, ``|v| |dtheta|^2 / 2``, at most
+    ``max_inject_mps``. P becomes ``G P G^T`` (:func:`reset_rows`). Returns the new ``q``,
+    ``pos``, ``vel``, ``w``, ``bias``, ``dr``, ``dg`` (new arrays), the AOA estimates,
+    the new P and whether body-style; writes the Jacobian's rows ``ga``, ``gvv``,
+    ``gvt`` (3, 3) into ``g_rows`` (3, 3, 3) (the last two only body-style).
+    """
+    bias0, dr0, cal0, aoa0, n_aoa = offsets
     dth = dx[_ATT : _ATT + 3].copy()
-    q_new, v_new, ga, gvv, gvt = inject(q, v_old, dth, dx[_VEL : _VEL + 3].copy(), body)
-    return q_new, v_new, reset_rows(p, ga, gvv, gvt, _ATT, _VEL), ga, gvv, gvt
+    body = False
+    if body_allowed and attitude_curvature(p, vel) <= max_frame_mps:
+        speed = math.sqrt(vel[0] * vel[0] + vel[1] * vel[1] + vel[2] * vel[2])
+        th2 = dth[0] * dth[0] + dth[1] * dth[1] + dth[2] * dth[2]
+        body = 0.5 * speed * th2 <= max_inject_mps
+    q_new, v_new, ga, gvv, gvt = inject(q, vel, dth, dx[_VEL : _VEL + 3].copy(), body)
+    g_rows[0] = ga
+    if body:
+        g_rows[1] = gvv
+        g_rows[2] = gvt
+    p_new = reset_rows(p, ga, gvv, gvt, _ATT, _VEL)
+    pos_new = pos + dx[_POS : _POS + 3]
+    w_new = w + dx[_RATE : _RATE + 3]
+    bias_new = bias + dx[bias0 : bias0 + bias.shape[0]]
+    dr_new = dr + dx[dr0 : dr0 + dr.shape[0]]
+    dg_new = dg + dx[cal0 : cal0 + dg.shape[0]]
+    if n_aoa:
+        aoa_b += dx[aoa0]
+        if n_aoa == 2:
+            aoa_k += dx[aoa0 + 1]
+    return q_new, pos_new, v_new, w_new, bias_new, dr_new, dg_new, aoa_b, aoa_k, p_new, body
 
 
 @njit(cache=True)

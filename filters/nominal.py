@@ -6,9 +6,10 @@ import numpy as np
 
 from filters import kernels
 from filters.algebra import (
+    BODY_FRAME_MAX_CURVATURE_MPS,
     BODY_INJECTION_MAX_CURVATURE_MPS,
 )
-from filters.state import ATT, POS, RATE
+from filters.state import ATT, RATE
 from ngnav.rotation import (
     dcm_from_quat,
     euler_from_quat,
@@ -158,34 +159,52 @@ class NominalMixin:
 
     # -------------------------------------------------------------- internals
     def _inject(self) -> None:
-        dx = self.x
-        self.pos = self.pos + dx[POS]
-        dth = dx[ATT]
-        v_old = self.vel
-        body = self.in_body_frame() and (
-            0.5 * self._speed() * float(dth @ dth) <= BODY_INJECTION_MAX_CURVATURE_MPS
+        """Fold the error state into the nominal state and reset it to zero.
+
+        Body-style (with the body-frame velocity error, and a correction small enough for
+        its first-order reset), the body velocity takes the correction and the corrected
+        attitude carries it. P takes the reset Jacobian ``G P G^T`` (first order): ``G = I``
+        except the attitude rows (``algebra.attitude_reset_jacobian``) and, body-style, the
+        velocity rows; a smoother's clone takes the same rows.
+        """
+        lay = self.layout
+        g = self._g_rows
+        (
+            self.q,
+            self.pos,
+            self.vel,
+            self.w,
+            self.bias,
+            self.dr,
+            self.dg,
+            self.aoa_b,
+            self.aoa_k,
+            self.P,
+            body,
+        ) = kernels.inject_error(
+            self.x,
+            self.P,
+            self.q,
+            self.pos,
+            self.vel,
+            self.w,
+            self.bias,
+            self.dr,
+            self.dg,
+            self.aoa_b,
+            self.aoa_k,
+            self._inject_offsets,
+            self._body_frame_allowed(),
+            BODY_FRAME_MAX_CURVATURE_MPS,
+            BODY_INJECTION_MAX_CURVATURE_MPS,
+            g,
         )
-        # body-style, the body velocity takes the correction and the corrected attitude
-        # carries it; P takes the reset Jacobian G P G^T (first order): G = I except the
-        # attitude rows (attitude_reset_jacobian) and, body-style, the velocity rows
-        self.q, self.vel, self.P, ga, gvv, gvt = kernels.inject_and_reset(
-            self.q, v_old, dx, self.P, body
-        )
-        self.w = self.w + dx[RATE]
-        self.bias = self.bias + dx[self.layout.bias]
-        self.dr = self.dr + dx[self.layout.dr]
-        self.dg = self.dg + dx[self.layout.cal]
-        if self.layout.n_aoa:
-            da = dx[self.layout.aoa]
-            self.aoa_b += float(da[0])
-            if self.layout.n_aoa == 2:
-                self.aoa_k += float(da[1])
         if self.lag is not None:
             if body:
-                self.lag.reset(ga, gvv, gvt)
+                self.lag.reset(g[0], g[1], g[2])
             else:
-                self.lag.reset(ga)
-        self.x = np.zeros(self.x.shape[0])
+                self.lag.reset(g[0])
+        self.x = np.zeros(lay.n)
 
     def reset_to_fix(
         self,
