@@ -926,11 +926,27 @@ def rate_measurement(
 
 
 @njit(cache=True)
-def rate_noise_cross(cq: np.ndarray, c: np.ndarray, dt: float, lag: float, n: int) -> np.ndarray:
+def rate_noise_cross(
+    cq: np.ndarray, c: np.ndarray, dt: float, k: int, held: np.ndarray, n: int
+) -> np.ndarray:
     """``E[dx v^T]`` (n, nq) of a block's propagation noise with its rate measurement's
-    (``NavFilter.rate_noise_cross``): ``cq`` (6, nq) the features' cross-covariance with
-    the products, ``c`` (3, 3) ``C_nb``, ``lag`` the mean samples to the block end."""
+    (``NavFilter.rate_noise_cross``, which says why): ``cq`` (6, nq) the features'
+    cross-covariance with the products, ``c`` (3, 3) ``C_nb``, ``k`` the block's samples
+    (interval ``dt``), ``held`` (k,) its held ones ((0,): none). (n, 0) with every sample
+    held."""
     nq = cq.shape[1]
+    if held.shape[0]:
+        total = 0.0
+        count = 0
+        for j in range(held.shape[0]):
+            if not held[j]:
+                total += k - (j + 1)
+                count += 1
+        if count == 0:
+            return np.zeros((n, 0))
+        lag = total / count  # the mean samples from a measured one to the block end
+    else:
+        lag = 0.5 * (k - 1)
     cw = c @ np.ascontiguousarray(cq[0:3])
     cf = c @ np.ascontiguousarray(cq[3:6])
     a = dt * dt * lag
@@ -942,6 +958,62 @@ def rate_noise_cross(cq: np.ndarray, c: np.ndarray, dt: float, lag: float, n: in
             m[_ATT + i, j] = -a * cw[i, j]
             m[_RATE + i, j] = -dt * cq[i, j]
     return m
+
+
+@njit(cache=True)
+def rate_update(
+    quad_mean: np.ndarray,
+    w_block: np.ndarray,
+    pairs: np.ndarray,
+    h_base: np.ndarray,
+    quad_d: np.ndarray,
+    aided: np.ndarray,
+    quad6_d: np.ndarray,
+    sg: np.ndarray,
+    dr: np.ndarray,
+    axes: np.ndarray,
+    solve_t: np.ndarray,
+    dr0: int,
+    p: np.ndarray,
+    bias_q: np.ndarray,
+    sqq: np.ndarray,
+    k: int,
+    cq: np.ndarray,
+    c: np.ndarray,
+    dt: float,
+    k_block: int,
+    held: np.ndarray,
+    rows: np.ndarray,
+):
+    """A block's rate products as a measurement, with its innovation covariance and NIS
+    (``NavFilter.measure_rate``, which says why).
+
+    ``quad_mean`` (nq,) the block's mean solved products over ``k`` samples; the
+    prediction, Jacobian and noise are :func:`rate_measurement`'s (its arguments from
+    ``w_block`` to ``sqq``); the noise's covariance with the block's propagation is
+    :func:`rate_noise_cross`'s (``cq``, ``c``, ``dt``, ``k_block``, ``held``; ``cq``
+    (0, 0): none). Only the products ``rows`` (nq,) are kept. Returns the innovation
+    ``z`` (m,), ``H`` (m, n), ``R`` (m, m), the cross-covariance ``M`` (n, m) ((n, 0)
+    without), ``S`` (m, m) (:func:`innovation_cov`) and the NIS (:func:`quadratic_form`).
+    """
+    n = p.shape[0]
+    pred, h, r = rate_measurement(
+        w_block, pairs, h_base, quad_d, aided, quad6_d, sg, dr, axes, solve_t, dr0, p, bias_q,
+        sqq, k,
+    )  # fmt: skip
+    z = quad_mean - pred
+    m = np.zeros((n, 0))
+    if cq.shape[0]:
+        m = rate_noise_cross(cq, c, dt, k_block, held, n)
+    if not rows.all():
+        # products an excluded channel leaves unsolved are the rate's own (aided)
+        z = z[rows]
+        h = h[rows]
+        r = r[rows][:, rows]
+        if m.shape[1]:
+            m = m[:, rows]
+    s = innovation_cov(h, p, r, m)
+    return z, h, r, m, s, quadratic_form(z, s)
 
 
 @njit(cache=True)
@@ -963,9 +1035,21 @@ def inverse(a: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def solved_quadratic(y: np.ndarray, s: np.ndarray) -> float:
-    """``y^T S^-1 y`` (``y`` (m,), ``S`` (m, m) nonsingular) by one LAPACK solve."""
-    return float(y @ np.linalg.solve(np.ascontiguousarray(s), np.ascontiguousarray(y)))
+def quadratic_form(y: np.ndarray, s: np.ndarray) -> float:
+    """``y^T S^-1 y`` (``y`` (m,), ``S`` (m, m) symmetric positive definite): for m = 3 in
+    closed form from S's upper triangle (inf unless its determinant is positive), else by
+    one LAPACK solve."""
+    if y.shape[0] != 3:
+        return y @ np.linalg.solve(np.ascontiguousarray(s), np.ascontiguousarray(y))
+    a, b, c = s[0, 0], s[0, 1], s[0, 2]
+    d, e, f = s[1, 1], s[1, 2], s[2, 2]
+    # adjugate of the symmetric 3 x 3 matrix
+    ia, ib, ic = d * f - e * e, c * e - b * f, b * e - c * d
+    id_, ie, if_ = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * ia + b * ib + c * ic
+    x, yy, z = y[0], y[1], y[2]
+    num = ia * x * x + id_ * yy * yy + if_ * z * z + 2.0 * (ib * x * yy + ic * x * z + ie * yy * z)
+    return num / det if det > 0.0 else np.inf
 
 
 @njit(cache=True)

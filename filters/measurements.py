@@ -15,6 +15,7 @@ from ngnav.rotation import (
 )
 
 _NO_VAR = np.zeros(0)  # kernels.rate_model: the rate not shrunk
+_NO_HELD = np.zeros(0, dtype=bool)  # kernels.rate_update: no sample held
 
 
 class MeasurementsMixin:
@@ -55,17 +56,7 @@ class MeasurementsMixin:
         arguments after the shrink): its constant part, the products' derivatives, the
         aided products' and, with geometry states, theirs (``sg``)."""
         sg, dr0, geo, axes, solve_t = self._geometry_args(sg)
-        return (
-            self._h_rate_base,
-            self._quad_d,
-            self._aided_rate_cols,
-            self._quad6_d,
-            sg,
-            geo,
-            axes,
-            solve_t,
-            dr0,
-        )
+        return (*self._rate_fixed, sg, geo, axes, solve_t, dr0)
 
     def measure_rate(
         self,
@@ -75,7 +66,7 @@ class MeasurementsMixin:
         sg: np.ndarray | None = None,
         block: tuple | None = None,
         held: np.ndarray | None = None,
-    ) -> Measurement:
+    ) -> tuple[Measurement, np.ndarray, float]:
         """A block's mean solved rate-quadratic terms (nq,) as a measurement.
 
         The prediction is :meth:`rate_model`'s plus the rate error's second-order mean
@@ -84,11 +75,21 @@ class MeasurementsMixin:
         block's :meth:`geometry_jacobian` (with ``DR`` states). ``block`` is the
         propagation that made ``w_block`` (:meth:`propagate`'s ``(k, dt, C)``), whose
         noise the measurement's is correlated with (:meth:`rate_noise_cross`;
-        ``held`` (K,) marks its held samples); None: independent.
+        ``held`` (K,) marks its held samples); None: independent. Products an excluded
+        channel leaves unsolved are the rate's own (aided) and left out
+        (:attr:`rate_rows`).
+
+        Returns the measurement, its innovation covariance ``S`` and its NIS.
         """
         # rate_model's at the shrunk rate, with the second order: the mean P_ij of d_i d_j
         # and its spread about it
-        pred, h, r = kernels.rate_measurement(
+        cq = self.noise.quad_cross_cov
+        if block is None or cq is None:
+            cq, k_block, dt, c = kernels.ABSENT, 0, 0.0, kernels.ABSENT
+        else:
+            k_block, dt, c = block
+        z, h, r, m, s, nis = kernels.rate_update(
+            np.asarray(quad_mean, dtype=float),
             np.asarray(w_block, dtype=float),
             self.quad_pairs,
             *self._rate_jacobian_parts(sg),
@@ -96,14 +97,20 @@ class MeasurementsMixin:
             self.bias[6:],
             self._sqq,
             k,
+            cq,
+            c,
+            dt,
+            k_block,
+            _NO_HELD if held is None else held,
+            self.rate_rows,
         )
-        m = None if block is None else self.rate_noise_cross(*block, held)
-        rows = self.rate_rows
-        if self.rate_dof < rows.shape[0]:
-            # products an excluded channel leaves unsolved are the rate's own (aided)
-            z = (quad_mean - pred)[rows]
-            return Measurement(z, h[rows], r[np.ix_(rows, rows)], None if m is None else m[:, rows])
-        return Measurement(quad_mean - pred, h, r, m)
+        if not m.shape[1]:
+            m = None
+        elif self.rate_dof < self.layout.nq:
+            # laid out as numpy's column selection m[:, rows] lays it (Fortran order):
+            # filterpy's BLAS products round by the layout
+            m = np.asfortranarray(m)
+        return Measurement(z, h, r, m), s, nis
 
     def update_rate(
         self,
@@ -121,10 +128,10 @@ class MeasurementsMixin:
         block, self._block = self._block, None
         if self.layout.nq == 0 or not self.rate_measurement:
             return None
-        meas = self.measure_rate(quad_mean, w_block, k, sg, block, held)
+        meas, s, nis = self.measure_rate(quad_mean, w_block, k, sg, block, held)
         self.last_rate_innovation = meas.z
-        self.last_rate_innovation_cov = meas.innovation_cov(self.P)
-        nis, ok = self._gated_update(meas, self.gate_q, self.last_rate_innovation_cov)
+        self.last_rate_innovation_cov = s
+        ok = self._fuse_if_passes(meas, nis, self.gate_q)
         self.counters.rate_updates += int(ok)
         self.counters.rate_rejected += int(not ok)
         return nis

@@ -297,15 +297,13 @@ class ProcessMixin:
     def _geometry_args(self, sg: np.ndarray | None) -> tuple:
         """The kernels' geometry arguments: ``sg``, its first column, the estimates, and
         with positions the sensing axes and ``T S`` (their rate derivative)."""
-        lay = self.layout
-        with_geo = bool(lay.n_dr or lay.n_cal)
-        with_dr = bool(lay.n_dr)
+        with_geo, dr0, axes, solve_t = self._geo_fixed
         return (
             sg if with_geo else kernels.ABSENT,
-            lay.geometry.start,
+            dr0,
             self.geometry_estimates(),
-            self.sensor_axes_b if with_dr else kernels.ABSENT,
-            self._solve_t if with_dr else kernels.ABSENT,
+            axes,
+            solve_t,
         )
 
     def _feature_offset(self, sg: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -339,11 +337,6 @@ class ProcessMixin:
         cq = self.noise.quad_cross_cov
         if cq is None or self.layout.nq == 0:
             return None
-        if held is None:
-            lag = 0.5 * (k - 1)
-        else:
-            j = np.arange(1, k + 1)[~np.asarray(held, dtype=bool)]
-            if j.size == 0:
-                return None
-            lag = float(np.mean(k - j))
-        return kernels.rate_noise_cross(cq, c, dt, lag, self.layout.n)
+        held = np.zeros(0, dtype=bool) if held is None else np.asarray(held, dtype=bool)
+        m = kernels.rate_noise_cross(cq, np.asarray(c, dtype=float), dt, k, held, self.layout.n)
+        return m if m.shape[1] else None
