@@ -332,8 +332,8 @@ class ConstraintsMixin:
         15 deg off otherwise fused GPS velocities through it for a second longer and
         relearned its tilt twice as badly (docs/notes/filter-notes.md).
         """
-        return self._body_frame_allowed() and (
-            kernels.attitude_curvature(self.P, self.vel) <= BODY_FRAME_MAX_CURVATURE_MPS
+        return self._body_frame_allowed() and kernels.body_frame_curvature_ok(
+            self.P, self.vel, BODY_FRAME_MAX_CURVATURE_MPS
         )
 
     def _body_frame_allowed(self) -> bool:

@@ -343,8 +343,8 @@ def inject_error(
     ``offsets`` holds the first columns of the biases, the sensor positions, the sensing
     axes and the angle-of-attack states and how many of the last there are. The correction
     is body-style (:func:`inject`) when ``body_allowed`` (the velocity error may be in the
-    body frame), the attitude's curvature of the velocity (:func:`attitude_curvature`) is
-    at most ``max_frame_mps`` and the correction's, ``|v| |dtheta|^2 / 2``, at most
+    body frame), the attitude's curvature of the velocity is at most ``max_frame_mps``
+    (:func:`body_frame_curvature_ok`) and the correction's, ``|v| |dtheta|^2 / 2``, at most
     ``max_inject_mps``. P becomes ``G P G^T`` (:func:`reset_rows`). Returns the new ``q``,
     ``pos``, ``vel``, ``w``, ``bias``, ``dr``, ``dg`` (new arrays), the AOA estimates,
     the new P and whether body-style; writes the Jacobian's rows ``ga``, ``gvv``,
@@ -353,7 +353,7 @@ def inject_error(
     bias0, dr0, cal0, aoa0, n_aoa = offsets
     dth = dx[_ATT : _ATT + 3].copy()
     body = False
-    if body_allowed and attitude_curvature(p, vel) <= max_frame_mps:
+    if body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps):
         speed = math.sqrt(vel[0] * vel[0] + vel[1] * vel[1] + vel[2] * vel[2])
         th2 = dth[0] * dth[0] + dth[1] * dth[1] + dth[2] * dth[2]
         body = 0.5 * speed * th2 <= max_inject_mps
@@ -381,6 +381,13 @@ def attitude_curvature(p: np.ndarray, v: np.ndarray) -> float:
     the attitude's uncertainty (``NavFilter.in_body_frame``)."""
     speed = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     return 0.5 * speed * (p[_ATT, _ATT] + p[_ATT + 1, _ATT + 1] + p[_ATT + 2, _ATT + 2])
+
+
+@njit(cache=True)
+def body_frame_curvature_ok(p: np.ndarray, v: np.ndarray, max_mps: float) -> bool:
+    """Whether :func:`attitude_curvature` is at most ``max_mps``: the body-frame velocity
+    error's bound (``NavFilter.in_body_frame``)."""
+    return attitude_curvature(p, v) <= max_mps
 
 
 @njit(cache=True)
@@ -687,6 +694,103 @@ def propagation_matrices(
         fc_base, f_n, c, bias_effect_f, bias0, quad_into, quad6_d, w, sg, dr0, dr, axes, solve_t
     )
     return transition(fc, t), rotated_nav_noise(c, q12_body, q_walks)
+
+
+@njit(cache=True)
+def feature_offset(bias: np.ndarray, sg: np.ndarray, geo: np.ndarray):
+    """What the nominal removes from ``wdot`` and ``f`` (3,) each: the biases ``bias``
+    (k,) plus, with geometry states (``sg`` (k, nd), else (0, 0)), ``sg``'s share of their
+    estimates ``geo`` (nd,) (``T S G dr_hat`` and ``T S diag(a^T) dg_hat``)."""
+    bw = bias[0:3].copy()
+    bf = bias[3:6].copy()
+    if sg.shape[0]:
+        off = np.ascontiguousarray(sg[0:6]) @ geo
+        bw += off[0:3]
+        bf += off[3:6]
+    return bw, bf
+
+
+@njit(cache=True)
+def propagate_block(
+    q: np.ndarray,
+    pos: np.ndarray,
+    vel: np.ndarray,
+    w0: np.ndarray,
+    p: np.ndarray,
+    g: np.ndarray,
+    body_allowed: bool,
+    max_frame_mps: float,
+    last_wdot: np.ndarray,
+    wdot: np.ndarray,
+    last_f: np.ndarray,
+    f: np.ndarray,
+    bias: np.ndarray,
+    mw: np.ndarray,
+    mw0: np.ndarray,
+    wts: np.ndarray,
+    wts1: np.ndarray,
+    dt: float,
+    fc_base: np.ndarray,
+    bias_effect_f: np.ndarray,
+    bias0: int,
+    quad_into: np.ndarray,
+    quad6_d: np.ndarray,
+    sg: np.ndarray,
+    dr0: int,
+    geo: np.ndarray,
+    axes: np.ndarray,
+    solve_t: np.ndarray,
+    q12_body: np.ndarray,
+    q_walks: np.ndarray,
+):
+    """One block's nominal propagation and its transition and noise, before filterpy's
+    predict (``NavFilter.propagate``).
+
+    :func:`propagate_nominal` of the samples less :func:`feature_offset`, with the
+    body-frame velocity error when ``body_allowed`` and :func:`body_frame_curvature_ok`;
+    then :func:`propagation_matrices` at the block-start ``C``, the block's mean force
+    shrunk by the attitude's uncertainty (:func:`shrunk_force`) and the block-end rate.
+    Returns the rates at the K samples (K, 3), the new ``q``, ``pos``, ``vel`` and rate
+    (3,), ``C_nb`` at the block start, the block's mean NED force (3,), F and Q (n, n).
+    """
+    bw, bf = feature_offset(bias, sg, geo)
+    body = body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps)
+    w, q_new, pos_new, vel_new, c0, f_n = propagate_nominal(
+        q, pos, vel, w0, p, g, body, last_wdot, wdot, bw, last_f, f, bf, mw, mw0, wts, wts1, dt
+    )
+    k = wdot.shape[0]
+    w_end = w[k - 1].copy()
+    f_j = shrunk_force(f_n, p[_ATT : _ATT + 3, _ATT : _ATT + 3])
+    phi, qn = propagation_matrices(
+        fc_base, f_j, c0, bias_effect_f, bias0, quad_into, quad6_d, w_end, sg, dr0, geo, axes,
+        solve_t, k * dt, q12_body, q_walks,
+    )  # fmt: skip
+    return w, q_new, pos_new, vel_new, w_end, c0, f_n, phi, qn
+
+
+@njit(cache=True)
+def predicted_covariance(
+    p: np.ndarray,
+    body_allowed: bool,
+    vel: np.ndarray,
+    max_frame_mps: float,
+    acc: np.ndarray,
+    pos: np.ndarray,
+    f_n: np.ndarray,
+    t_s: float,
+) -> np.ndarray:
+    """P (n, n) after filterpy's predict over a block of ``t_s`` s, symmetrised (a new
+    array): with the NED velocity error (not ``body_allowed`` or not
+    :func:`body_frame_curvature_ok` at ``vel``) the force curvature's noise added in place
+    (:func:`add_curvature_noise`, ``acc``, ``pos`` its 1-sigma parts, ``f_n`` the block's
+    mean force), with the body-frame error its parts started again from zero, in place
+    (``NavFilter._add_curvature_noise``)."""
+    if body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps):
+        acc[:] = 0.0
+        pos[:] = 0.0
+    else:
+        add_curvature_noise(p, acc, pos, f_n, t_s, _ATT, _VEL, _POS)
+    return symmetrised(p)
 
 
 @njit(cache=True)

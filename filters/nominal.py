@@ -50,38 +50,54 @@ class NominalMixin:
             The nominal rate at each sample (for the rate measurement).
         """
         k = wdot.shape[0]
-        bw, bf = self._feature_offset(sg)
         mw, mw0, wts, wts1 = self._block_weights(k, dt)
+        t = k * dt
+        with_geo, dr0, axes, solve_t = self._geo_fixed
+        if with_geo and sg is None:
+            raise ValueError("a filter with geometry states needs the block's sg")
+        quad_into = self._quad_into_features
         # rates, the attitude's rotation vector (second order, with the coning term
         # sum_s cum_s x alpha_s / 2) and the trapezoid's increments of a_n = m f_b0 + g
         # (f rotated to the block-start body frame by the running attitude), with the
         # force's and gravity's second-order means for the velocity error's frame (the
-        # truth's-force sign, tried, was worse: docs/design.md, "Process model")
-        w, self.q, self.pos, self.vel, c0, f_n = kernels.propagate_nominal(
+        # truth's-force sign, tried, was worse: docs/design.md, "Process model"); then
+        # the block's F and Q (propagation_matrices, at force_for_jacobian's force)
+        w, self.q, self.pos, self.vel, self.w, c0, f_n, phi, q = kernels.propagate_block(
             self.q,
             self.pos,
             self.vel,
             self.w,
             self.P,
             self._g,
-            self.in_body_frame(),
+            self._body_frame_allowed(),
+            BODY_FRAME_MAX_CURVATURE_MPS,
             self._last_wdot,
             wdot,
-            bw,
             self._last_f,
             f,
-            bf,
+            self.bias,
             mw,
             mw0,
             wts,
             wts1,
             dt,
+            self._fc_base,
+            self._bias_effect_f,
+            self.layout.bias.start,
+            kernels.ABSENT if quad_into is None else quad_into,
+            self._quad6_d,
+            sg if with_geo else kernels.ABSENT,
+            dr0,
+            self.geometry_estimates(),
+            axes,
+            solve_t,
+            self._q12_body(k, dt),
+            self._q_walks(t),
         )
-        self.w = w[-1].copy()
         self._last_wdot = wdot[-1].copy()
         self._last_f = f[-1].copy()
-        self.t_s += k * dt
-        self._predict_covariance(k, dt, c0, f_n, sg)
+        self.t_s += t
+        self._predict_covariance(phi, q, f_n, t)
         self._block = (k, dt, c0)  # for the rate measurement of this block
         self.counters.blocks += 1
         self.counters.samples += k

@@ -6,6 +6,7 @@ import numpy as np
 from filterpy.kalman import predict as kf_predict
 
 from filters import kernels
+from filters.algebra import BODY_FRAME_MAX_CURVATURE_MPS
 from filters.state import ATT, POS, RATE, VEL
 from ngnav.rotation import (
     dcm_from_quat,
@@ -16,14 +17,24 @@ class ProcessMixin:
     """F and Q for a block, filterpy's predict, and the noise added beside the transition."""
 
     def _predict_covariance(
-        self, k: int, dt: float, c: np.ndarray, f_n: np.ndarray, sg: np.ndarray | None
+        self, phi: np.ndarray, q: np.ndarray, f_n: np.ndarray, t_s: float
     ) -> None:
-        phi, q = self.propagation_matrices(k, dt, c, self.force_for_jacobian(f_n), sg)
+        """filterpy's predict by the block's ``phi`` and ``q`` (over ``t_s`` s, mean NED
+        force ``f_n``), then the force curvature's noise (:meth:`_add_curvature_noise`)
+        and P symmetrised."""
         if self.lag is not None:
             self.lag.start(self.P, phi)
-        self.x, self.P = kf_predict(self.x, self.P, phi, q)
-        self._add_curvature_noise(k * dt, f_n)
-        self._symmetrise()
+        self.x, p = kf_predict(self.x, self.P, phi, q)
+        self.P = kernels.predicted_covariance(
+            p,
+            self._body_frame_allowed(),
+            self.vel,
+            BODY_FRAME_MAX_CURVATURE_MPS,
+            self._curvature_sd_mps,
+            self._curvature_sd_m,
+            f_n,
+            t_s,
+        )
 
     def force_for_jacobian(self, f_n: np.ndarray) -> np.ndarray:
         """The block's mean force (NED, m/s^2) as the transition's ``-[f_n]x`` reads it.
@@ -305,17 +316,6 @@ class ProcessMixin:
             axes,
             solve_t,
         )
-
-    def _feature_offset(self, sg: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """What the nominal removes from ``wdot`` and ``f``: biases plus ``sg``'s share of
-        the geometry estimates (``T S G dr_hat`` and ``T S diag(a^T) dg_hat``)."""
-        bw, bf = self.bias[0:3], self.bias[3:6]
-        if self.layout.n_dr or self.layout.n_cal:
-            if sg is None:
-                raise ValueError("a filter with geometry states needs the block's sg")
-            off = sg[0:6] @ self.geometry_estimates()
-            bw, bf = bw + off[0:3], bf + off[3:6]
-        return bw, bf
 
     # ------------------------------------------------------------- measurements
     def rate_noise_cross(
