@@ -1030,6 +1030,33 @@ def rate_measurement(
 
 
 @njit(cache=True)
+def gps_model(q: np.ndarray, w: np.ndarray, r: np.ndarray, n: int):
+    """The antenna's offset ``C r`` and velocity ``C (w x r)`` (NED, 3,) and their
+    Jacobians ``H_pos``, ``H_vel`` (3, n) (``NavFilter.gps_model``) at the attitude ``q``
+    (4,) and rate ``w`` (3,), antenna ``r`` (3,) (FRD)."""
+    c = dcm(q)
+    cr = c @ r
+    u = np.empty(3)
+    u[0] = w[1] * r[2] - w[2] * r[1]
+    u[1] = w[2] * r[0] - w[0] * r[2]
+    u[2] = w[0] * r[1] - w[1] * r[0]
+    cwr = c @ u
+    hp = np.zeros((3, n))
+    hv = np.zeros((3, n))
+    hpa = -_skew(cr)
+    hva = -_skew(cwr)
+    hvr = -c @ _skew(r)
+    for i in range(3):
+        hp[i, _POS + i] = 1.0
+        hv[i, _VEL + i] = 1.0
+        for j in range(3):
+            hp[i, _ATT + j] = hpa[i, j]
+            hv[i, _ATT + j] = hva[i, j]
+            hv[i, _RATE + j] = hvr[i, j]
+    return cr, cwr, hp, hv
+
+
+@njit(cache=True)
 def rate_noise_cross(
     cq: np.ndarray, c: np.ndarray, dt: float, k: int, held: np.ndarray, n: int
 ) -> np.ndarray:

@@ -5,14 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from filters import kernels
-from filters.state import ATT, POS, RATE, VEL
+from filters.state import RATE
 from filters.supervision import GAP_RESET_AFTER_REJECTS
 from filters.updates import Measurement, quadratic_form
 from ngnav.records import GpsUpdateResult
-from ngnav.rotation import (
-    dcm_from_quat,
-    skew,
-)
 
 _NO_VAR = np.zeros(0)  # kernels.rate_model: the rate not shrunk
 _NO_HELD = np.zeros(0, dtype=bool)  # kernels.rate_update: no sample held
@@ -252,21 +248,12 @@ class MeasurementsMixin:
 
         Returns ``C r``, ``C (w x r)``, ``H_pos`` (3, n), ``H_vel`` (3, n).
         """
-        c = dcm_from_quat(q_nb)
-        r = self.antenna_b_m
-        cr = c @ r
-        wx, wy, wz = np.asarray(omega_b_rps, dtype=float).tolist()
-        rx, ry, rz = r.tolist()
-        cwr = c @ np.array([wy * rz - wz * ry, wz * rx - wx * rz, wx * ry - wy * rx])
-        n = self.layout.n
-        hp = np.zeros((3, n))
-        hp[:, POS] = self._eye3
-        hp[:, ATT] = -skew(cr)
-        hv = np.zeros((3, n))
-        hv[:, VEL] = self._eye3
-        hv[:, ATT] = -skew(cwr)
-        hv[:, RATE] = -c @ skew(r)
-        return cr, cwr, hp, hv
+        return kernels.gps_model(
+            np.asarray(q_nb, dtype=float),
+            np.asarray(omega_b_rps, dtype=float),
+            self.antenna_b_m,
+            self.layout.n,
+        )
 
     def measure_gps_position(
         self, pos_ned_m: np.ndarray, pos_sigma_m: np.ndarray | float, dt_fix_s: float = 0.0
@@ -332,9 +319,11 @@ class MeasurementsMixin:
         nis_vt = np.nan
         if pos_rows[2]:
             nis_vt = float(yp[2] ** 2 / sp[2, 2]) if sp[2, 2] > 0 else np.inf
-        mp = mp.take(pos_rows)
+        if not pos_rows.all():
+            mp = mp.take(pos_rows)
+            sp = mp.innovation_cov(self.P)
         if reset:
-            nis_p = quadratic_form(mp.z, mp.innovation_cov(self.P))
+            nis_p = quadratic_form(mp.z, sp)
             passed = np.isfinite(nis_p) and nis_p <= self._gate(mp)
             if passed or self._consec_rejects + 1 >= GAP_RESET_AFTER_REJECTS:
                 mv = self._gps_velocity(vel_ned_mps, vel_sigma_mps, vel_rows)
@@ -356,7 +345,7 @@ class MeasurementsMixin:
             self.counters.gps_rejected_vel += int(vel_rows.any())
             self._consec_rejects += 1
             return GpsUpdateResult(_full(nis_p, pos_rows), np.nan, False, False, nis_h, nis_vt)
-        nis_p, ok_p = self._gated_update(mp, self._gate(mp))
+        nis_p, ok_p = self._gated_update(mp, self._gate(mp), sp)
         # the velocity at the state the position update left
         mv = self._gps_velocity(vel_ned_mps, vel_sigma_mps, vel_rows)
         nis_v, ok_v = (np.nan, False) if mv is None else self._gated_update(mv, self._gate(mv))
