@@ -94,7 +94,7 @@ class ConstraintsMixin:
             + lift * lift * self.blend_remainder_var()
             + self._load_angle_var()
         )
-        return float(np.sqrt(var))
+        return math.sqrt(var) if var >= 0.0 else math.nan
 
     def _load_angle_var(self) -> float:
         """Variance of the angle of attack from the load's noise, ``(w K)^2 Var(u)``, rad^2."""

@@ -502,6 +502,24 @@ def ned_velocity_curvature(v: np.ndarray, p_full: np.ndarray):
     return mean, cov
 
 
+@njit(cache=True)
+def epoch_covariance(p: np.ndarray, vel: np.ndarray, body_allowed: bool, max_frame_mps: float):
+    """An epoch record's covariance (n, n) and NED velocity (3,), new arrays, and the
+    covariance's navigation block (12, 12) (``Pipeline._record``): with the body-frame
+    velocity error (``body_allowed`` and :func:`body_frame_curvature_ok`) the NED
+    velocity's second-order part's mean and covariance added (:func:`ned_velocity_curvature`:
+    the NED velocity a user reads)."""
+    out = p.copy()
+    v = vel.copy()
+    if body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps):
+        mc, cc = ned_velocity_curvature(vel, p)
+        for i in range(3):
+            v[i] = vel[i] + mc[i]
+            for j in range(3):
+                out[_VEL + i, _VEL + j] += cc[i, j]
+    return out, v, out[:N_NAV, :N_NAV].copy()
+
+
 # -------- the process model: F, Q and the force curvature
 
 
