@@ -787,6 +787,29 @@ def propagate_block(
 
 
 @njit(cache=True)
+def curvature_noise_step(
+    p: np.ndarray,
+    body_allowed: bool,
+    vel: np.ndarray,
+    max_frame_mps: float,
+    acc: np.ndarray,
+    pos: np.ndarray,
+    f_n: np.ndarray,
+    t_s: float,
+) -> None:
+    """The force curvature's noise over ``t_s`` s, in place (``NavFilter._add_curvature_noise``,
+    which says why): with the NED velocity error (not ``body_allowed`` or not
+    :func:`body_frame_curvature_ok` at ``vel``) :func:`add_curvature_noise` (``acc``, ``pos``
+    its 1-sigma parts, ``f_n`` the block's mean force); with the body-frame error its parts
+    started again from zero."""
+    if body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps):
+        acc[:] = 0.0
+        pos[:] = 0.0
+    else:
+        add_curvature_noise(p, acc, pos, f_n, t_s, _ATT, _VEL, _POS)
+
+
+@njit(cache=True)
 def predicted_covariance(
     p: np.ndarray,
     body_allowed: bool,
@@ -797,17 +820,9 @@ def predicted_covariance(
     f_n: np.ndarray,
     t_s: float,
 ) -> np.ndarray:
-    """P (n, n) after filterpy's predict over a block of ``t_s`` s, symmetrised (a new
-    array): with the NED velocity error (not ``body_allowed`` or not
-    :func:`body_frame_curvature_ok` at ``vel``) the force curvature's noise added in place
-    (:func:`add_curvature_noise`, ``acc``, ``pos`` its 1-sigma parts, ``f_n`` the block's
-    mean force), with the body-frame error its parts started again from zero, in place
-    (``NavFilter._add_curvature_noise``)."""
-    if body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps):
-        acc[:] = 0.0
-        pos[:] = 0.0
-    else:
-        add_curvature_noise(p, acc, pos, f_n, t_s, _ATT, _VEL, _POS)
+    """P (n, n) after filterpy's predict over a block of ``t_s`` s: :func:`curvature_noise_step`
+    (its arguments), then symmetrised (a new array)."""
+    curvature_noise_step(p, body_allowed, vel, max_frame_mps, acc, pos, f_n, t_s)
     return symmetrised(p)
 
 

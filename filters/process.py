@@ -7,7 +7,7 @@ from filterpy.kalman import predict as kf_predict
 
 from filters import kernels
 from filters.algebra import BODY_FRAME_MAX_CURVATURE_MPS
-from filters.state import ATT, POS, RATE, VEL
+from filters.state import ATT, RATE, VEL
 from ngnav.rotation import (
     dcm_from_quat,
 )
@@ -71,18 +71,15 @@ class ProcessMixin:
         Not carried while the velocity error is in the body frame (the attitude is then
         known to a few degrees and ``b`` is negligible).
         """
-        if self.in_body_frame():
-            self._forget_curvature()
-            return
-        kernels.add_curvature_noise(
+        kernels.curvature_noise_step(
             self.P,
+            self._body_frame_allowed(),
+            self.vel,
+            BODY_FRAME_MAX_CURVATURE_MPS,
             self._curvature_sd_mps,
             self._curvature_sd_m,
             f_n,
             t_s,
-            ATT.start,
-            VEL.start,
-            POS.start,
         )
 
     def _forget_curvature(self) -> None:
