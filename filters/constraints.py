@@ -94,7 +94,7 @@ class ConstraintsMixin:
             + lift * lift * self.blend_remainder_var()
             + self._load_angle_var()
         )
-        return float(np.sqrt(var))
+        return math.sqrt(var) if var >= 0.0 else math.nan
 
     def _load_angle_var(self) -> float:
         """Variance of the angle of attack from the load's noise, ``(w K)^2 Var(u)``, rad^2."""
@@ -332,13 +332,18 @@ class ConstraintsMixin:
         15 deg off otherwise fused GPS velocities through it for a second longer and
         relearned its tilt twice as badly (docs/notes/filter-notes.md).
         """
+        return self._body_frame_allowed() and kernels.body_frame_curvature_ok(
+            self.P, self.vel, BODY_FRAME_MAX_CURVATURE_MPS
+        )
+
+    def _body_frame_allowed(self) -> bool:
+        """:meth:`in_body_frame` but for its curvature bound: the setting is on and the last
+        GPS velocity and vehicle-model updates passed their gates."""
         if not self.body_velocity_error:
             return False
-        if self._consec_vel_rejects > 0 or not all(self._model_last_ok.values()):
-            # a GPS velocity or a vehicle model just failed its gate: P's attitude is in
-            # doubt, and the body-frame error would fuse through it
-            return False
-        return kernels.attitude_curvature(self.P, self.vel) <= BODY_FRAME_MAX_CURVATURE_MPS
+        # a GPS velocity or a vehicle model just failed its gate: P's attitude is in doubt,
+        # and the body-frame error would fuse through it
+        return self._consec_vel_rejects == 0 and all(self._model_last_ok.values())
 
     def velocity_curvature(self) -> tuple[np.ndarray, np.ndarray]:
         """Mean (3,) and covariance (3, 3) of the NED velocity's second-order part, m/s

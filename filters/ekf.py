@@ -307,6 +307,10 @@ class NavFilter(
         # the load's sensitivity to the sensor positions (3, 3N), with DR states
         self._lift_sg_f: np.ndarray | None = None
         self._eye3 = np.eye(3)
+        lay = self.layout
+        #: kernels.inject_error's state offsets, and its Jacobian rows' output
+        self._inject_offsets = (lay.bias.start, lay.dr.start, lay.cal.start, lay.aoa.start, n_aoa)
+        self._g_rows = np.zeros((3, 3, 3))
         self._g = gravity_n_mps2()
         self._consec_rejects = 0
         self._consec_slip_rejects = 0

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
+from filters import kernels
 from filters.algebra import _product_derivatives
 from filters.noise import FilterNoise
 from filters.state import N_NAV, POS, RATE, VEL
@@ -127,3 +128,14 @@ class FeatureModelMixin:
         # the aided products' map into the solved ones (nq, 6); (nq, 0) without
         aq = self._aided_in_quad
         self._aided_rate_cols = np.zeros((self.layout.nq, 0)) if aq is None else aq
+        # the kernels' arguments these fix (ProcessMixin._geometry_args,
+        # MeasurementsMixin._rate_jacobian_parts)
+        lay = self.layout
+        with_dr = bool(lay.n_dr)
+        self._geo_fixed = (
+            bool(lay.n_dr or lay.n_cal),
+            lay.geometry.start,
+            self.sensor_axes_b if with_dr else kernels.ABSENT,
+            self._solve_t if with_dr else kernels.ABSENT,
+        )
+        self._rate_fixed = (self._h_rate_base, self._quad_d, self._aided_rate_cols, self._quad6_d)

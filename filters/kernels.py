@@ -319,13 +319,60 @@ def inject(q: np.ndarray, v_old: np.ndarray, dth: np.ndarray, dv: np.ndarray, bo
 
 
 @njit(cache=True)
-def inject_and_reset(q: np.ndarray, v_old: np.ndarray, dx: np.ndarray, p: np.ndarray, body: bool):
-    """:func:`inject` of the error state ``dx`` (n,) and its reset ``G P G^T``
-    (:func:`reset_rows`) in one call (``NavFilter._inject``); returns ``q``, the velocity,
-    the new P and the Jacobian's rows ``ga``, ``gvv``, ``gvt`` (for the smoother's clone)."""
+def inject_error(
+    dx: np.ndarray,
+    p: np.ndarray,
+    q: np.ndarray,
+    pos: np.ndarray,
+    vel: np.ndarray,
+    w: np.ndarray,
+    bias: np.ndarray,
+    dr: np.ndarray,
+    dg: np.ndarray,
+    aoa_b: float,
+    aoa_k: float,
+    offsets: tuple,
+    body_allowed: bool,
+    max_frame_mps: float,
+    max_inject_mps: float,
+    g_rows: np.ndarray,
+):
+    """The error state ``dx`` (n,) folded into the nominal state, and P's reset
+    (``NavFilter._inject``, which says why).
+
+    ``offsets`` holds the first columns of the biases, the sensor positions, the sensing
+    axes and the angle-of-attack states and how many of the last there are. The correction
+    is body-style (:func:`inject`) when ``body_allowed`` (the velocity error may be in the
+    body frame), the attitude's curvature of the velocity is at most ``max_frame_mps``
+    (:func:`body_frame_curvature_ok`) and the correction's, ``|v| |dtheta|^2 / 2``, at most
+    ``max_inject_mps``. P becomes ``G P G^T`` (:func:`reset_rows`). Returns the new ``q``,
+    ``pos``, ``vel``, ``w``, ``bias``, ``dr``, ``dg`` (new arrays), the AOA estimates,
+    the new P and whether body-style; writes the Jacobian's rows ``ga``, ``gvv``,
+    ``gvt`` (3, 3) into ``g_rows`` (3, 3, 3) (the last two only body-style).
+    """
+    bias0, dr0, cal0, aoa0, n_aoa = offsets
     dth = dx[_ATT : _ATT + 3].copy()
-    q_new, v_new, ga, gvv, gvt = inject(q, v_old, dth, dx[_VEL : _VEL + 3].copy(), body)
-    return q_new, v_new, reset_rows(p, ga, gvv, gvt, _ATT, _VEL), ga, gvv, gvt
+    body = False
+    if body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps):
+        speed = math.sqrt(vel[0] * vel[0] + vel[1] * vel[1] + vel[2] * vel[2])
+        th2 = dth[0] * dth[0] + dth[1] * dth[1] + dth[2] * dth[2]
+        body = 0.5 * speed * th2 <= max_inject_mps
+    q_new, v_new, ga, gvv, gvt = inject(q, vel, dth, dx[_VEL : _VEL + 3].copy(), body)
+    g_rows[0] = ga
+    if body:
+        g_rows[1] = gvv
+        g_rows[2] = gvt
+    p_new = reset_rows(p, ga, gvv, gvt, _ATT, _VEL)
+    pos_new = pos + dx[_POS : _POS + 3]
+    w_new = w + dx[_RATE : _RATE + 3]
+    bias_new = bias + dx[bias0 : bias0 + bias.shape[0]]
+    dr_new = dr + dx[dr0 : dr0 + dr.shape[0]]
+    dg_new = dg + dx[cal0 : cal0 + dg.shape[0]]
+    if n_aoa:
+        aoa_b += dx[aoa0]
+        if n_aoa == 2:
+            aoa_k += dx[aoa0 + 1]
+    return q_new, pos_new, v_new, w_new, bias_new, dr_new, dg_new, aoa_b, aoa_k, p_new, body
 
 
 @njit(cache=True)
@@ -334,6 +381,13 @@ def attitude_curvature(p: np.ndarray, v: np.ndarray) -> float:
     the attitude's uncertainty (``NavFilter.in_body_frame``)."""
     speed = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     return 0.5 * speed * (p[_ATT, _ATT] + p[_ATT + 1, _ATT + 1] + p[_ATT + 2, _ATT + 2])
+
+
+@njit(cache=True)
+def body_frame_curvature_ok(p: np.ndarray, v: np.ndarray, max_mps: float) -> bool:
+    """Whether :func:`attitude_curvature` is at most ``max_mps``: the body-frame velocity
+    error's bound (``NavFilter.in_body_frame``)."""
+    return attitude_curvature(p, v) <= max_mps
 
 
 @njit(cache=True)
@@ -446,6 +500,24 @@ def ned_velocity_curvature(v: np.ndarray, p_full: np.ndarray):
                     s += mp[i, a, b] * mp[j, b, a]
             cov[i, j] = 0.5 * s
     return mean, cov
+
+
+@njit(cache=True)
+def epoch_covariance(p: np.ndarray, vel: np.ndarray, body_allowed: bool, max_frame_mps: float):
+    """An epoch record's covariance (n, n) and NED velocity (3,), new arrays, and the
+    covariance's navigation block (12, 12) (``Pipeline._record``): with the body-frame
+    velocity error (``body_allowed`` and :func:`body_frame_curvature_ok`) the NED
+    velocity's second-order part's mean and covariance added (:func:`ned_velocity_curvature`:
+    the NED velocity a user reads)."""
+    out = p.copy()
+    v = vel.copy()
+    if body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps):
+        mc, cc = ned_velocity_curvature(vel, p)
+        for i in range(3):
+            v[i] = vel[i] + mc[i]
+            for j in range(3):
+                out[_VEL + i, _VEL + j] += cc[i, j]
+    return out, v, out[:N_NAV, :N_NAV].copy()
 
 
 # -------- the process model: F, Q and the force curvature
@@ -640,6 +712,118 @@ def propagation_matrices(
         fc_base, f_n, c, bias_effect_f, bias0, quad_into, quad6_d, w, sg, dr0, dr, axes, solve_t
     )
     return transition(fc, t), rotated_nav_noise(c, q12_body, q_walks)
+
+
+@njit(cache=True)
+def feature_offset(bias: np.ndarray, sg: np.ndarray, geo: np.ndarray):
+    """What the nominal removes from ``wdot`` and ``f`` (3,) each: the biases ``bias``
+    (k,) plus, with geometry states (``sg`` (k, nd), else (0, 0)), ``sg``'s share of their
+    estimates ``geo`` (nd,) (``T S G dr_hat`` and ``T S diag(a^T) dg_hat``)."""
+    bw = bias[0:3].copy()
+    bf = bias[3:6].copy()
+    if sg.shape[0]:
+        off = np.ascontiguousarray(sg[0:6]) @ geo
+        bw += off[0:3]
+        bf += off[3:6]
+    return bw, bf
+
+
+@njit(cache=True)
+def propagate_block(
+    q: np.ndarray,
+    pos: np.ndarray,
+    vel: np.ndarray,
+    w0: np.ndarray,
+    p: np.ndarray,
+    g: np.ndarray,
+    body_allowed: bool,
+    max_frame_mps: float,
+    last_wdot: np.ndarray,
+    wdot: np.ndarray,
+    last_f: np.ndarray,
+    f: np.ndarray,
+    bias: np.ndarray,
+    mw: np.ndarray,
+    mw0: np.ndarray,
+    wts: np.ndarray,
+    wts1: np.ndarray,
+    dt: float,
+    fc_base: np.ndarray,
+    bias_effect_f: np.ndarray,
+    bias0: int,
+    quad_into: np.ndarray,
+    quad6_d: np.ndarray,
+    sg: np.ndarray,
+    dr0: int,
+    geo: np.ndarray,
+    axes: np.ndarray,
+    solve_t: np.ndarray,
+    q12_body: np.ndarray,
+    q_walks: np.ndarray,
+):
+    """One block's nominal propagation and its transition and noise, before filterpy's
+    predict (``NavFilter.propagate``).
+
+    :func:`propagate_nominal` of the samples less :func:`feature_offset`, with the
+    body-frame velocity error when ``body_allowed`` and :func:`body_frame_curvature_ok`;
+    then :func:`propagation_matrices` at the block-start ``C``, the block's mean force
+    shrunk by the attitude's uncertainty (:func:`shrunk_force`) and the block-end rate.
+    Returns the rates at the K samples (K, 3), the new ``q``, ``pos``, ``vel`` and rate
+    (3,), ``C_nb`` at the block start, the block's mean NED force (3,), F and Q (n, n).
+    """
+    bw, bf = feature_offset(bias, sg, geo)
+    body = body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps)
+    w, q_new, pos_new, vel_new, c0, f_n = propagate_nominal(
+        q, pos, vel, w0, p, g, body, last_wdot, wdot, bw, last_f, f, bf, mw, mw0, wts, wts1, dt
+    )
+    k = wdot.shape[0]
+    w_end = w[k - 1].copy()
+    f_j = shrunk_force(f_n, p[_ATT : _ATT + 3, _ATT : _ATT + 3])
+    phi, qn = propagation_matrices(
+        fc_base, f_j, c0, bias_effect_f, bias0, quad_into, quad6_d, w_end, sg, dr0, geo, axes,
+        solve_t, k * dt, q12_body, q_walks,
+    )  # fmt: skip
+    return w, q_new, pos_new, vel_new, w_end, c0, f_n, phi, qn
+
+
+@njit(cache=True)
+def curvature_noise_step(
+    p: np.ndarray,
+    body_allowed: bool,
+    vel: np.ndarray,
+    max_frame_mps: float,
+    acc: np.ndarray,
+    pos: np.ndarray,
+    f_n: np.ndarray,
+    t_s: float,
+) -> None:
+    """The force curvature's noise over ``t_s`` s, in place (``NavFilter._add_curvature_noise``,
+    which says why): with the NED velocity error (not ``body_allowed`` or not
+    :func:`body_frame_curvature_ok` at ``vel``) :func:`add_curvature_noise` (``acc``, ``pos``
+    its 1-sigma parts, ``f_n`` the block's mean force); with the body-frame error its parts
+    started again from zero."""
+    if body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps):
+        acc[:] = 0.0
+        pos[:] = 0.0
+    else:
+        add_curvature_noise(p, acc, pos, f_n, t_s, _ATT, _VEL, _POS)
+
+
+@njit(cache=True)
+def predicted_covariance(
+    p: np.ndarray,
+    body_allowed: bool,
+    vel: np.ndarray,
+    max_frame_mps: float,
+    acc: np.ndarray,
+    pos: np.ndarray,
+    f_n: np.ndarray,
+    t_s: float,
+) -> np.ndarray:
+    """P (n, n) after filterpy's predict over a block of ``t_s`` s: :func:`curvature_noise_step`
+    (its arguments), then symmetrised (a new array)."""
+    curvature_noise_step(p, body_allowed, vel, max_frame_mps, acc, pos, f_n, t_s)
+    return symmetrised(p)
 
 
 @njit(cache=True)
@@ -879,11 +1063,54 @@ def rate_measurement(
 
 
 @njit(cache=True)
-def rate_noise_cross(cq: np.ndarray, c: np.ndarray, dt: float, lag: float, n: int) -> np.ndarray:
+def gps_model(q: np.ndarray, w: np.ndarray, r: np.ndarray, n: int):
+    """The antenna's offset ``C r`` and velocity ``C (w x r)`` (NED, 3,) and their
+    Jacobians ``H_pos``, ``H_vel`` (3, n) (``NavFilter.gps_model``) at the attitude ``q``
+    (4,) and rate ``w`` (3,), antenna ``r`` (3,) (FRD)."""
+    c = dcm(q)
+    cr = c @ r
+    u = np.empty(3)
+    u[0] = w[1] * r[2] - w[2] * r[1]
+    u[1] = w[2] * r[0] - w[0] * r[2]
+    u[2] = w[0] * r[1] - w[1] * r[0]
+    cwr = c @ u
+    hp = np.zeros((3, n))
+    hv = np.zeros((3, n))
+    hpa = -_skew(cr)
+    hva = -_skew(cwr)
+    hvr = -c @ _skew(r)
+    for i in range(3):
+        hp[i, _POS + i] = 1.0
+        hv[i, _VEL + i] = 1.0
+        for j in range(3):
+            hp[i, _ATT + j] = hpa[i, j]
+            hv[i, _ATT + j] = hva[i, j]
+            hv[i, _RATE + j] = hvr[i, j]
+    return cr, cwr, hp, hv
+
+
+@njit(cache=True)
+def rate_noise_cross(
+    cq: np.ndarray, c: np.ndarray, dt: float, k: int, held: np.ndarray, n: int
+) -> np.ndarray:
     """``E[dx v^T]`` (n, nq) of a block's propagation noise with its rate measurement's
-    (``NavFilter.rate_noise_cross``): ``cq`` (6, nq) the features' cross-covariance with
-    the products, ``c`` (3, 3) ``C_nb``, ``lag`` the mean samples to the block end."""
+    (``NavFilter.rate_noise_cross``, which says why): ``cq`` (6, nq) the features'
+    cross-covariance with the products, ``c`` (3, 3) ``C_nb``, ``k`` the block's samples
+    (interval ``dt``), ``held`` (k,) its held ones ((0,): none). (n, 0) with every sample
+    held."""
     nq = cq.shape[1]
+    if held.shape[0]:
+        total = 0.0
+        count = 0
+        for j in range(held.shape[0]):
+            if not held[j]:
+                total += k - (j + 1)
+                count += 1
+        if count == 0:
+            return np.zeros((n, 0))
+        lag = total / count  # the mean samples from a measured one to the block end
+    else:
+        lag = 0.5 * (k - 1)
     cw = c @ np.ascontiguousarray(cq[0:3])
     cf = c @ np.ascontiguousarray(cq[3:6])
     a = dt * dt * lag
@@ -895,6 +1122,62 @@ def rate_noise_cross(cq: np.ndarray, c: np.ndarray, dt: float, lag: float, n: in
             m[_ATT + i, j] = -a * cw[i, j]
             m[_RATE + i, j] = -dt * cq[i, j]
     return m
+
+
+@njit(cache=True)
+def rate_update(
+    quad_mean: np.ndarray,
+    w_block: np.ndarray,
+    pairs: np.ndarray,
+    h_base: np.ndarray,
+    quad_d: np.ndarray,
+    aided: np.ndarray,
+    quad6_d: np.ndarray,
+    sg: np.ndarray,
+    dr: np.ndarray,
+    axes: np.ndarray,
+    solve_t: np.ndarray,
+    dr0: int,
+    p: np.ndarray,
+    bias_q: np.ndarray,
+    sqq: np.ndarray,
+    k: int,
+    cq: np.ndarray,
+    c: np.ndarray,
+    dt: float,
+    k_block: int,
+    held: np.ndarray,
+    rows: np.ndarray,
+):
+    """A block's rate products as a measurement, with its innovation covariance and NIS
+    (``NavFilter.measure_rate``, which says why).
+
+    ``quad_mean`` (nq,) the block's mean solved products over ``k`` samples; the
+    prediction, Jacobian and noise are :func:`rate_measurement`'s (its arguments from
+    ``w_block`` to ``sqq``); the noise's covariance with the block's propagation is
+    :func:`rate_noise_cross`'s (``cq``, ``c``, ``dt``, ``k_block``, ``held``; ``cq``
+    (0, 0): none). Only the products ``rows`` (nq,) are kept. Returns the innovation
+    ``z`` (m,), ``H`` (m, n), ``R`` (m, m), the cross-covariance ``M`` (n, m) ((n, 0)
+    without), ``S`` (m, m) (:func:`innovation_cov`) and the NIS (:func:`quadratic_form`).
+    """
+    n = p.shape[0]
+    pred, h, r = rate_measurement(
+        w_block, pairs, h_base, quad_d, aided, quad6_d, sg, dr, axes, solve_t, dr0, p, bias_q,
+        sqq, k,
+    )  # fmt: skip
+    z = quad_mean - pred
+    m = np.zeros((n, 0))
+    if cq.shape[0]:
+        m = rate_noise_cross(cq, c, dt, k_block, held, n)
+    if not rows.all():
+        # products an excluded channel leaves unsolved are the rate's own (aided)
+        z = z[rows]
+        h = h[rows]
+        r = r[rows][:, rows]
+        if m.shape[1]:
+            m = m[:, rows]
+    s = innovation_cov(h, p, r, m)
+    return z, h, r, m, s, quadratic_form(z, s)
 
 
 @njit(cache=True)
@@ -916,9 +1199,21 @@ def inverse(a: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def solved_quadratic(y: np.ndarray, s: np.ndarray) -> float:
-    """``y^T S^-1 y`` (``y`` (m,), ``S`` (m, m) nonsingular) by one LAPACK solve."""
-    return float(y @ np.linalg.solve(np.ascontiguousarray(s), np.ascontiguousarray(y)))
+def quadratic_form(y: np.ndarray, s: np.ndarray) -> float:
+    """``y^T S^-1 y`` (``y`` (m,), ``S`` (m, m) symmetric positive definite): for m = 3 in
+    closed form from S's upper triangle (inf unless its determinant is positive), else by
+    one LAPACK solve."""
+    if y.shape[0] != 3:
+        return y @ np.linalg.solve(np.ascontiguousarray(s), np.ascontiguousarray(y))
+    a, b, c = s[0, 0], s[0, 1], s[0, 2]
+    d, e, f = s[1, 1], s[1, 2], s[2, 2]
+    # adjugate of the symmetric 3 x 3 matrix
+    ia, ib, ic = d * f - e * e, c * e - b * f, b * e - c * d
+    id_, ie, if_ = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * ia + b * ib + c * ic
+    x, yy, z = y[0], y[1], y[2]
+    num = ia * x * x + id_ * yy * yy + if_ * z * z + 2.0 * (ib * x * yy + ic * x * z + ie * yy * z)
+    return num / det if det > 0.0 else np.inf
 
 
 @njit(cache=True)

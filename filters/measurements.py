@@ -5,16 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 from filters import kernels
-from filters.state import ATT, POS, RATE, VEL
+from filters.state import RATE
 from filters.supervision import GAP_RESET_AFTER_REJECTS
 from filters.updates import Measurement, quadratic_form
 from ngnav.records import GpsUpdateResult
-from ngnav.rotation import (
-    dcm_from_quat,
-    skew,
-)
 
 _NO_VAR = np.zeros(0)  # kernels.rate_model: the rate not shrunk
+_NO_HELD = np.zeros(0, dtype=bool)  # kernels.rate_update: no sample held
 
 
 class MeasurementsMixin:
@@ -55,17 +52,7 @@ class MeasurementsMixin:
         arguments after the shrink): its constant part, the products' derivatives, the
         aided products' and, with geometry states, theirs (``sg``)."""
         sg, dr0, geo, axes, solve_t = self._geometry_args(sg)
-        return (
-            self._h_rate_base,
-            self._quad_d,
-            self._aided_rate_cols,
-            self._quad6_d,
-            sg,
-            geo,
-            axes,
-            solve_t,
-            dr0,
-        )
+        return (*self._rate_fixed, sg, geo, axes, solve_t, dr0)
 
     def measure_rate(
         self,
@@ -75,7 +62,7 @@ class MeasurementsMixin:
         sg: np.ndarray | None = None,
         block: tuple | None = None,
         held: np.ndarray | None = None,
-    ) -> Measurement:
+    ) -> tuple[Measurement, np.ndarray, float]:
         """A block's mean solved rate-quadratic terms (nq,) as a measurement.
 
         The prediction is :meth:`rate_model`'s plus the rate error's second-order mean
@@ -84,11 +71,21 @@ class MeasurementsMixin:
         block's :meth:`geometry_jacobian` (with ``DR`` states). ``block`` is the
         propagation that made ``w_block`` (:meth:`propagate`'s ``(k, dt, C)``), whose
         noise the measurement's is correlated with (:meth:`rate_noise_cross`;
-        ``held`` (K,) marks its held samples); None: independent.
+        ``held`` (K,) marks its held samples); None: independent. Products an excluded
+        channel leaves unsolved are the rate's own (aided) and left out
+        (:attr:`rate_rows`).
+
+        Returns the measurement, its innovation covariance ``S`` and its NIS.
         """
         # rate_model's at the shrunk rate, with the second order: the mean P_ij of d_i d_j
         # and its spread about it
-        pred, h, r = kernels.rate_measurement(
+        cq = self.noise.quad_cross_cov
+        if block is None or cq is None:
+            cq, k_block, dt, c = kernels.ABSENT, 0, 0.0, kernels.ABSENT
+        else:
+            k_block, dt, c = block
+        z, h, r, m, s, nis = kernels.rate_update(
+            np.asarray(quad_mean, dtype=float),
             np.asarray(w_block, dtype=float),
             self.quad_pairs,
             *self._rate_jacobian_parts(sg),
@@ -96,14 +93,20 @@ class MeasurementsMixin:
             self.bias[6:],
             self._sqq,
             k,
+            cq,
+            c,
+            dt,
+            k_block,
+            _NO_HELD if held is None else held,
+            self.rate_rows,
         )
-        m = None if block is None else self.rate_noise_cross(*block, held)
-        rows = self.rate_rows
-        if self.rate_dof < rows.shape[0]:
-            # products an excluded channel leaves unsolved are the rate's own (aided)
-            z = (quad_mean - pred)[rows]
-            return Measurement(z, h[rows], r[np.ix_(rows, rows)], None if m is None else m[:, rows])
-        return Measurement(quad_mean - pred, h, r, m)
+        if not m.shape[1]:
+            m = None
+        elif self.rate_dof < self.layout.nq:
+            # laid out as numpy's column selection m[:, rows] lays it (Fortran order):
+            # filterpy's BLAS products round by the layout
+            m = np.asfortranarray(m)
+        return Measurement(z, h, r, m), s, nis
 
     def update_rate(
         self,
@@ -121,10 +124,10 @@ class MeasurementsMixin:
         block, self._block = self._block, None
         if self.layout.nq == 0 or not self.rate_measurement:
             return None
-        meas = self.measure_rate(quad_mean, w_block, k, sg, block, held)
+        meas, s, nis = self.measure_rate(quad_mean, w_block, k, sg, block, held)
         self.last_rate_innovation = meas.z
-        self.last_rate_innovation_cov = meas.innovation_cov(self.P)
-        nis, ok = self._gated_update(meas, self.gate_q, self.last_rate_innovation_cov)
+        self.last_rate_innovation_cov = s
+        ok = self._fuse_if_passes(meas, nis, self.gate_q)
         self.counters.rate_updates += int(ok)
         self.counters.rate_rejected += int(not ok)
         return nis
@@ -245,21 +248,12 @@ class MeasurementsMixin:
 
         Returns ``C r``, ``C (w x r)``, ``H_pos`` (3, n), ``H_vel`` (3, n).
         """
-        c = dcm_from_quat(q_nb)
-        r = self.antenna_b_m
-        cr = c @ r
-        wx, wy, wz = np.asarray(omega_b_rps, dtype=float).tolist()
-        rx, ry, rz = r.tolist()
-        cwr = c @ np.array([wy * rz - wz * ry, wz * rx - wx * rz, wx * ry - wy * rx])
-        n = self.layout.n
-        hp = np.zeros((3, n))
-        hp[:, POS] = self._eye3
-        hp[:, ATT] = -skew(cr)
-        hv = np.zeros((3, n))
-        hv[:, VEL] = self._eye3
-        hv[:, ATT] = -skew(cwr)
-        hv[:, RATE] = -c @ skew(r)
-        return cr, cwr, hp, hv
+        return kernels.gps_model(
+            np.asarray(q_nb, dtype=float),
+            np.asarray(omega_b_rps, dtype=float),
+            self.antenna_b_m,
+            self.layout.n,
+        )
 
     def measure_gps_position(
         self, pos_ned_m: np.ndarray, pos_sigma_m: np.ndarray | float, dt_fix_s: float = 0.0
@@ -325,9 +319,11 @@ class MeasurementsMixin:
         nis_vt = np.nan
         if pos_rows[2]:
             nis_vt = float(yp[2] ** 2 / sp[2, 2]) if sp[2, 2] > 0 else np.inf
-        mp = mp.take(pos_rows)
+        if not pos_rows.all():
+            mp = mp.take(pos_rows)
+            sp = mp.innovation_cov(self.P)
         if reset:
-            nis_p = quadratic_form(mp.z, mp.innovation_cov(self.P))
+            nis_p = quadratic_form(mp.z, sp)
             passed = np.isfinite(nis_p) and nis_p <= self._gate(mp)
             if passed or self._consec_rejects + 1 >= GAP_RESET_AFTER_REJECTS:
                 mv = self._gps_velocity(vel_ned_mps, vel_sigma_mps, vel_rows)
@@ -349,7 +345,7 @@ class MeasurementsMixin:
             self.counters.gps_rejected_vel += int(vel_rows.any())
             self._consec_rejects += 1
             return GpsUpdateResult(_full(nis_p, pos_rows), np.nan, False, False, nis_h, nis_vt)
-        nis_p, ok_p = self._gated_update(mp, self._gate(mp))
+        nis_p, ok_p = self._gated_update(mp, self._gate(mp), sp)
         # the velocity at the state the position update left
         mv = self._gps_velocity(vel_ned_mps, vel_sigma_mps, vel_rows)
         nis_v, ok_v = (np.nan, False) if mv is None else self._gated_update(mv, self._gate(mv))

@@ -6,9 +6,10 @@ import numpy as np
 
 from filters import kernels
 from filters.algebra import (
+    BODY_FRAME_MAX_CURVATURE_MPS,
     BODY_INJECTION_MAX_CURVATURE_MPS,
 )
-from filters.state import ATT, POS, RATE
+from filters.state import ATT, RATE
 from ngnav.rotation import (
     dcm_from_quat,
     euler_from_quat,
@@ -49,38 +50,54 @@ class NominalMixin:
             The nominal rate at each sample (for the rate measurement).
         """
         k = wdot.shape[0]
-        bw, bf = self._feature_offset(sg)
         mw, mw0, wts, wts1 = self._block_weights(k, dt)
+        t = k * dt
+        with_geo, dr0, axes, solve_t = self._geo_fixed
+        if with_geo and sg is None:
+            raise ValueError("a filter with geometry states needs the block's sg")
+        quad_into = self._quad_into_features
         # rates, the attitude's rotation vector (second order, with the coning term
         # sum_s cum_s x alpha_s / 2) and the trapezoid's increments of a_n = m f_b0 + g
         # (f rotated to the block-start body frame by the running attitude), with the
         # force's and gravity's second-order means for the velocity error's frame (the
-        # truth's-force sign, tried, was worse: docs/design.md, "Process model")
-        w, self.q, self.pos, self.vel, c0, f_n = kernels.propagate_nominal(
+        # truth's-force sign, tried, was worse: docs/design.md, "Process model"); then
+        # the block's F and Q (propagation_matrices, at force_for_jacobian's force)
+        w, self.q, self.pos, self.vel, self.w, c0, f_n, phi, q = kernels.propagate_block(
             self.q,
             self.pos,
             self.vel,
             self.w,
             self.P,
             self._g,
-            self.in_body_frame(),
+            self._body_frame_allowed(),
+            BODY_FRAME_MAX_CURVATURE_MPS,
             self._last_wdot,
             wdot,
-            bw,
             self._last_f,
             f,
-            bf,
+            self.bias,
             mw,
             mw0,
             wts,
             wts1,
             dt,
+            self._fc_base,
+            self._bias_effect_f,
+            self.layout.bias.start,
+            kernels.ABSENT if quad_into is None else quad_into,
+            self._quad6_d,
+            sg if with_geo else kernels.ABSENT,
+            dr0,
+            self.geometry_estimates(),
+            axes,
+            solve_t,
+            self._q12_body(k, dt),
+            self._q_walks(t),
         )
-        self.w = w[-1].copy()
         self._last_wdot = wdot[-1].copy()
         self._last_f = f[-1].copy()
-        self.t_s += k * dt
-        self._predict_covariance(k, dt, c0, f_n, sg)
+        self.t_s += t
+        self._predict_covariance(phi, q, f_n, t)
         self._block = (k, dt, c0)  # for the rate measurement of this block
         self.counters.blocks += 1
         self.counters.samples += k
@@ -158,34 +175,52 @@ class NominalMixin:
 
     # -------------------------------------------------------------- internals
     def _inject(self) -> None:
-        dx = self.x
-        self.pos = self.pos + dx[POS]
-        dth = dx[ATT]
-        v_old = self.vel
-        body = self.in_body_frame() and (
-            0.5 * self._speed() * float(dth @ dth) <= BODY_INJECTION_MAX_CURVATURE_MPS
+        """Fold the error state into the nominal state and reset it to zero.
+
+        Body-style (with the body-frame velocity error, and a correction small enough for
+        its first-order reset), the body velocity takes the correction and the corrected
+        attitude carries it. P takes the reset Jacobian ``G P G^T`` (first order): ``G = I``
+        except the attitude rows (``algebra.attitude_reset_jacobian``) and, body-style, the
+        velocity rows; a smoother's clone takes the same rows.
+        """
+        lay = self.layout
+        g = self._g_rows
+        (
+            self.q,
+            self.pos,
+            self.vel,
+            self.w,
+            self.bias,
+            self.dr,
+            self.dg,
+            self.aoa_b,
+            self.aoa_k,
+            self.P,
+            body,
+        ) = kernels.inject_error(
+            self.x,
+            self.P,
+            self.q,
+            self.pos,
+            self.vel,
+            self.w,
+            self.bias,
+            self.dr,
+            self.dg,
+            self.aoa_b,
+            self.aoa_k,
+            self._inject_offsets,
+            self._body_frame_allowed(),
+            BODY_FRAME_MAX_CURVATURE_MPS,
+            BODY_INJECTION_MAX_CURVATURE_MPS,
+            g,
         )
-        # body-style, the body velocity takes the correction and the corrected attitude
-        # carries it; P takes the reset Jacobian G P G^T (first order): G = I except the
-        # attitude rows (attitude_reset_jacobian) and, body-style, the velocity rows
-        self.q, self.vel, self.P, ga, gvv, gvt = kernels.inject_and_reset(
-            self.q, v_old, dx, self.P, body
-        )
-        self.w = self.w + dx[RATE]
-        self.bias = self.bias + dx[self.layout.bias]
-        self.dr = self.dr + dx[self.layout.dr]
-        self.dg = self.dg + dx[self.layout.cal]
-        if self.layout.n_aoa:
-            da = dx[self.layout.aoa]
-            self.aoa_b += float(da[0])
-            if self.layout.n_aoa == 2:
-                self.aoa_k += float(da[1])
         if self.lag is not None:
             if body:
-                self.lag.reset(ga, gvv, gvt)
+                self.lag.reset(g[0], g[1], g[2])
             else:
-                self.lag.reset(ga)
-        self.x = np.zeros(self.x.shape[0])
+                self.lag.reset(g[0])
+        self.x = np.zeros(lay.n)
 
     def reset_to_fix(
         self,

@@ -23,7 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from filters.algebra import ned_velocity_curvature
+from filters import kernels
+from filters.algebra import BODY_FRAME_MAX_CURVATURE_MPS
 from filters.alignment import AlignmentMixin
 from filters.ekf import NavFilter
 from filters.exclusion import ExclusionMixin, SuspectsMixin
@@ -291,13 +292,11 @@ class Pipeline(
         self.n_epochs += 1
         if not self.keep_estimates:
             self._rows.clear()
-        p = nf.P.copy()
-        vel = nf.vel
-        if nf.in_body_frame():
-            # the NED velocity a user reads: its second-order part's mean and covariance
-            mc, cc = ned_velocity_curvature(nf.vel, nf.P)
-            vel = vel + mc
-            p[VEL, VEL] += cc
+        # with the body-frame velocity error, the NED velocity a user reads: its
+        # second-order part's mean and covariance
+        p, vel, cov = kernels.epoch_covariance(
+            nf.P, nf.vel, nf._body_frame_allowed(), BODY_FRAME_MAX_CURVATURE_MPS
+        )
         lay = nf.layout
         aoa = (nf.aoa, nf.aoa_sigma) if lay.n_aoa else (None, None)
         c = nf.counters
@@ -329,7 +328,6 @@ class Pipeline(
                 valid,
             ),
         )
-        cov = p[:12, :12].copy()  # a view would keep the whole P of every epoch
         self._rows.append((nf.t_s, nf.pos, vel, nf.q, nf.w, nf.bias, cov, bound, *aoa, *extra))
 
     @property

@@ -6,7 +6,8 @@ import numpy as np
 from filterpy.kalman import predict as kf_predict
 
 from filters import kernels
-from filters.state import ATT, POS, RATE, VEL
+from filters.algebra import BODY_FRAME_MAX_CURVATURE_MPS
+from filters.state import ATT, RATE, VEL
 from ngnav.rotation import (
     dcm_from_quat,
 )
@@ -16,14 +17,24 @@ class ProcessMixin:
     """F and Q for a block, filterpy's predict, and the noise added beside the transition."""
 
     def _predict_covariance(
-        self, k: int, dt: float, c: np.ndarray, f_n: np.ndarray, sg: np.ndarray | None
+        self, phi: np.ndarray, q: np.ndarray, f_n: np.ndarray, t_s: float
     ) -> None:
-        phi, q = self.propagation_matrices(k, dt, c, self.force_for_jacobian(f_n), sg)
+        """filterpy's predict by the block's ``phi`` and ``q`` (over ``t_s`` s, mean NED
+        force ``f_n``), then the force curvature's noise (:meth:`_add_curvature_noise`)
+        and P symmetrised."""
         if self.lag is not None:
             self.lag.start(self.P, phi)
-        self.x, self.P = kf_predict(self.x, self.P, phi, q)
-        self._add_curvature_noise(k * dt, f_n)
-        self._symmetrise()
+        self.x, p = kf_predict(self.x, self.P, phi, q)
+        self.P = kernels.predicted_covariance(
+            p,
+            self._body_frame_allowed(),
+            self.vel,
+            BODY_FRAME_MAX_CURVATURE_MPS,
+            self._curvature_sd_mps,
+            self._curvature_sd_m,
+            f_n,
+            t_s,
+        )
 
     def force_for_jacobian(self, f_n: np.ndarray) -> np.ndarray:
         """The block's mean force (NED, m/s^2) as the transition's ``-[f_n]x`` reads it.
@@ -60,18 +71,15 @@ class ProcessMixin:
         Not carried while the velocity error is in the body frame (the attitude is then
         known to a few degrees and ``b`` is negligible).
         """
-        if self.in_body_frame():
-            self._forget_curvature()
-            return
-        kernels.add_curvature_noise(
+        kernels.curvature_noise_step(
             self.P,
+            self._body_frame_allowed(),
+            self.vel,
+            BODY_FRAME_MAX_CURVATURE_MPS,
             self._curvature_sd_mps,
             self._curvature_sd_m,
             f_n,
             t_s,
-            ATT.start,
-            VEL.start,
-            POS.start,
         )
 
     def _forget_curvature(self) -> None:
@@ -297,27 +305,14 @@ class ProcessMixin:
     def _geometry_args(self, sg: np.ndarray | None) -> tuple:
         """The kernels' geometry arguments: ``sg``, its first column, the estimates, and
         with positions the sensing axes and ``T S`` (their rate derivative)."""
-        lay = self.layout
-        with_geo = bool(lay.n_dr or lay.n_cal)
-        with_dr = bool(lay.n_dr)
+        with_geo, dr0, axes, solve_t = self._geo_fixed
         return (
             sg if with_geo else kernels.ABSENT,
-            lay.geometry.start,
+            dr0,
             self.geometry_estimates(),
-            self.sensor_axes_b if with_dr else kernels.ABSENT,
-            self._solve_t if with_dr else kernels.ABSENT,
+            axes,
+            solve_t,
         )
-
-    def _feature_offset(self, sg: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """What the nominal removes from ``wdot`` and ``f``: biases plus ``sg``'s share of
-        the geometry estimates (``T S G dr_hat`` and ``T S diag(a^T) dg_hat``)."""
-        bw, bf = self.bias[0:3], self.bias[3:6]
-        if self.layout.n_dr or self.layout.n_cal:
-            if sg is None:
-                raise ValueError("a filter with geometry states needs the block's sg")
-            off = sg[0:6] @ self.geometry_estimates()
-            bw, bf = bw + off[0:3], bf + off[3:6]
-        return bw, bf
 
     # ------------------------------------------------------------- measurements
     def rate_noise_cross(
@@ -339,11 +334,6 @@ class ProcessMixin:
         cq = self.noise.quad_cross_cov
         if cq is None or self.layout.nq == 0:
             return None
-        if held is None:
-            lag = 0.5 * (k - 1)
-        else:
-            j = np.arange(1, k + 1)[~np.asarray(held, dtype=bool)]
-            if j.size == 0:
-                return None
-            lag = float(np.mean(k - j))
-        return kernels.rate_noise_cross(cq, c, dt, lag, self.layout.n)
+        held = np.zeros(0, dtype=bool) if held is None else np.asarray(held, dtype=bool)
+        m = kernels.rate_noise_cross(cq, np.asarray(c, dtype=float), dt, k, held, self.layout.n)
+        return m if m.shape[1] else None

@@ -203,13 +203,13 @@ class RemainderMixin:
             along = -4.0 * dw * k_u / speed + 6.0 * w * k_u / speed**2
             vv = np.outer(v_hat, v_hat)
             mx[3:6, 3:6] += dv_da * (slope * (np.eye(3) - vv) / speed + along * vv)
-        sel = np.r_[idx, np.arange(ia.start, ia.stop)]
+        sel = np.concatenate((idx, np.arange(ia.start, ia.stop)))
         if mb is None:
             return t.T @ mx @ t, sel, 0.0
         # x = (dtheta, xi_v, da, AOA states, dw): the angle's terms beside the body
         # velocity's
         nx = 7 + na
-        sel = np.r_[sel, np.arange(RATE.start, RATE.stop)]
+        sel = np.concatenate((sel, np.arange(RATE.start, RATE.stop)))
         t2 = np.zeros((nx + 3, 6 + na + 3))
         t2[:nx, : 6 + na] = t
         t2[nx:, 6 + na :] = np.eye(3)

@@ -8,6 +8,7 @@ its reason (measured ones in ``docs/design.md``, "Heuristics and thresholds").
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -115,10 +116,15 @@ class SupervisionMixin:
         ``s`` is the innovation covariance when the caller has it already.
         """
         nis = quadratic_form(meas.z, meas.innovation_cov(self.P) if s is None else s)
-        if not np.isfinite(nis) or nis > (self.gate3 if gate is None else gate):
-            return nis, False
+        return nis, self._fuse_if_passes(meas, nis, gate)
+
+    def _fuse_if_passes(self, meas: Measurement, nis: float, gate: float | None = None) -> bool:
+        """Fuse ``meas``, whose NIS is ``nis``, if that passes ``gate`` (default the 3-dof
+        one); whether it was fused."""
+        if not math.isfinite(nis) or nis > (self.gate3 if gate is None else gate):
+            return False
         self._apply(meas)
-        return nis, True
+        return True
 
     @property
     def consecutive_position_rejects(self) -> int:

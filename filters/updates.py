@@ -98,14 +98,5 @@ def update_correlated(
 
 
 def quadratic_form(y: np.ndarray, s: np.ndarray) -> float:
-    """``y^T S^-1 y`` for a symmetric positive definite S (closed form for 3 x 3)."""
-    if y.shape[0] != 3:
-        return kernels.solved_quadratic(np.asarray(y, dtype=float), np.asarray(s, dtype=float))
-    (a, b, c), (_, d, e), (_, _, f) = s.tolist()
-    # adjugate of the symmetric 3 x 3 matrix
-    ia, ib, ic = d * f - e * e, c * e - b * f, b * e - c * d
-    id_, ie, if_ = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * ia + b * ib + c * ic
-    x, yy, z = y.tolist()
-    num = ia * x * x + id_ * yy * yy + if_ * z * z + 2.0 * (ib * x * yy + ic * x * z + ie * yy * z)
-    return num / det if det > 0.0 else float("inf")
+    """``y^T S^-1 y`` for a symmetric positive definite S (:func:`kernels.quadratic_form`)."""
+    return kernels.quadratic_form(np.asarray(y, dtype=float), np.asarray(s, dtype=float))
