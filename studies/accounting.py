@@ -19,7 +19,9 @@ course, a reset onto a fix, a start again) are not counted.
 The errors are the truth's less the estimate's, as ``filters.evaluate.run_errors`` takes them:
 the attitude the NED rotation vector of ``q_true q_est^-1``, the rate body-frame (FRD), the
 velocity and position NED (with the body-frame velocity error its variance is that error's,
-which agrees with the NED one to first order).
+which agrees with the NED one to first order); the biases of the solved angular acceleration
+and force the solve's image ``S beta`` of the true channel biases (calibrated by the scale the
+filter is told) less the filter's estimate.
 
 Run from the repository root: ``python -m studies.accounting --scenario ground --runs 24
 --window 12 --component heading``.
@@ -35,8 +37,9 @@ import numpy as np
 
 from filters.ekf import NavFilter
 from filters.pipeline import run_filter
-from filters.state import ATT, POS, RATE, VEL
+from filters.state import ATT, B_F, B_WDOT, POS, RATE, VEL
 from filters.updates import Measurement
+from ngnav.frontend import ArraySolver
 from ngnav.records import FlightTruth
 from ngnav.rotation import quat_conjugate, quat_multiply, quat_to_rotvec
 from ngnav.sim.flight_scenario import FlightScenario
@@ -56,8 +59,14 @@ COMPONENTS: dict[str, tuple[str, int]] = {
     "pos_n": ("pos", 0),
     "pos_e": ("pos", 1),
     "pos_d": ("pos", 2),
+    "wdot_bias_x": ("b_wdot", 0),
+    "wdot_bias_y": ("b_wdot", 1),
+    "wdot_bias_z": ("b_wdot", 2),
+    "f_bias_x": ("b_f", 0),
+    "f_bias_y": ("b_f", 1),
+    "f_bias_z": ("b_f", 2),
 }
-_STATE = {"att": ATT, "rate": RATE, "vel": VEL, "pos": POS}
+_STATE = {"att": ATT, "rate": RATE, "vel": VEL, "pos": POS, "b_wdot": B_WDOT, "b_f": B_F}
 #: The kinds of step, in the table's order.
 KINDS = (
     "propagation",
@@ -118,8 +127,11 @@ class StepLog:
 class _Observer:
     """Errors and variances of the chosen components at the filter's current state."""
 
-    def __init__(self, truth: FlightTruth, components: tuple[str, ...]) -> None:
+    def __init__(
+        self, truth: FlightTruth, components: tuple[str, ...], bias_true: np.ndarray
+    ) -> None:
         self.truth = truth
+        self.bias_true = bias_true
         self.t0 = float(truth.t_s[0])
         self.dt = float(np.median(np.diff(truth.t_s)))
         self.parts = [COMPONENTS[c] for c in components]
@@ -134,6 +146,8 @@ class _Observer:
             "rate": tr.omega_b_rps[j] - nf.w,
             "vel": tr.vel_ned_mps[j] - nf.vel,
             "pos": tr.pos_ned_m[j] - nf.pos,
+            "b_wdot": self.bias_true[j, 0:3] - nf.bias[0:3],
+            "b_f": self.bias_true[j, 3:6] - nf.bias[3:6],
         }
         e = np.array([errs[k][a] for k, a in self.parts])
         return e, nf.P[self.idx, self.idx].copy()
@@ -183,7 +197,10 @@ def account_run(scn: FlightScenario, run: int, components: tuple[str, ...]) -> S
     if unknown:
         raise ValueError(f"unknown component {unknown[0]!r}; known: {', '.join(COMPONENTS)}")
     sim = simulate_flight(scn, run)
-    obs = _Observer(sim.truth, tuple(components))
+    cfg = sim.config
+    smat = ArraySolver(cfg.layout, cfg.noise_sigma_mps2).solve_matrix
+    bias_true = (sim.channel_bias_mps2 / cfg.scale) @ smat[0:6].T
+    obs = _Observer(sim.truth, tuple(components), bias_true)
     with _observed(obs):
         run_filter(sim.samples, sim.fixes, sim.config)
     return obs.log()

@@ -78,6 +78,18 @@ def test_a_run_is_observed_step_by_step_and_the_filter_is_left_as_it_was():
     np.testing.assert_array_equal(log.var_after[:-1], log.var_before[1:])
 
 
+def test_the_bias_states_are_followed_against_the_solves_image_of_the_channel_biases():
+    # a wrong map (the channel biases unsolved, or in g) reads tens of sigmas: the filter
+    # learns the biases in flight
+    scn = load_flight("tactical", ["run.rate_hz=200"])
+    comps = ("wdot_bias_x", "wdot_bias_y", "wdot_bias_z", "f_bias_x", "f_bias_y", "f_bias_z")
+    log = account_run(scn, 0, comps)
+    z = log.err_after / np.sqrt(log.var_after)
+    assert np.abs(z).max() < 5.0
+    assert 0.05 < float(np.mean(z**2)) < 3.0
+    np.testing.assert_array_equal(log.err_after[:-1], log.err_before[1:])
+
+
 def test_an_unknown_component_is_named():
     scn = load_flight("tactical", ["run.rate_hz=200"])
     with pytest.raises(ValueError, match="unknown component 'heading_rate'"):
