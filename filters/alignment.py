@@ -39,13 +39,19 @@ def _static_tilt(f_b: np.ndarray) -> tuple[float, float]:
     return roll, pitch
 
 
-def _gps_course(vel_ned_mps: np.ndarray, vel_sigma_mps: float) -> tuple[float, float] | None:
-    """GPS course (rad) and its 1-sigma ``atan(3 sigma_v / speed)``; None below the min speed."""
+def _gps_course(
+    vel_ned_mps: np.ndarray, vel_sigma_mps: float, n_sigma: float = 3.0
+) -> tuple[float, float] | None:
+    """GPS course (rad) and a sigma ``atan(n_sigma sigma_v / speed)``; None below the min speed.
+
+    The course's own noise is the cross-track velocity's over the speed (``n_sigma = 1``: a
+    measurement of the heading); where it puts the heading outright (the start, a fixed-wing's
+    contradicted heading) its sigma is three times that (no measurement of the factor)."""
     speed = float(np.hypot(vel_ned_mps[0], vel_ned_mps[1]))
     if not speed > COURSE_MIN_SPEED_MPS:  # slow, or no horizontal velocity (NaN)
         return None
     return float(np.arctan2(vel_ned_mps[1], vel_ned_mps[0])), float(
-        np.arctan2(3 * vel_sigma_mps, speed)
+        np.arctan2(n_sigma * vel_sigma_mps, speed)
     )
 
 
@@ -154,7 +160,9 @@ class AlignmentMixin:
             roll0, pitch0 = np.deg2rad(ini.roll_deg), np.deg2rad(ini.pitch_deg)
             ts = np.deg2rad(ini.tilt_sigma_deg)
             att_sigma = np.array([ts, ts, np.deg2rad(ini.heading_sigma_deg)])
-        self._heading_pending = ini.heading_source == "gps"
+        #: The heading is the GPS course (``initial.heading_source = "gps"``).
+        self._heading_is_course = ini.heading_source == "gps"
+        self._heading_pending = self._heading_is_course
         if self._heading_pending:
             att_sigma[2] = np.deg2rad(30.0)
         q0 = quat_from_euler(roll0, pitch0, yaw0)

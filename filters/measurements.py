@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 
 from filters import kernels
-from filters.state import RATE
+from filters.state import ATT, RATE
 from filters.supervision import GAP_RESET_AFTER_REJECTS
 from filters.updates import Measurement, quadratic_form
 from ngnav.records import GpsUpdateResult
+from ngnav.rotation import dcm_from_quat
 
 _NO_VAR = np.zeros(0)  # kernels.rate_model: the rate not shrunk
 _NO_HELD = np.zeros(0, dtype=bool)  # kernels.rate_update: no sample held
@@ -159,6 +160,34 @@ class MeasurementsMixin:
         nis, ok = self._gated_update(meas)
         self.counters.zero_rate_used += int(ok)
         self.counters.zero_rate_rejected += int(not ok)
+        return nis, ok
+
+    def heading_model(self) -> tuple[float, np.ndarray]:
+        """The heading (ZYX yaw, rad) and its Jacobian (n,) in the NED attitude error.
+
+        With ``C_t = exp([dtheta]x) C``, ``yaw = atan2(C_10, C_00)`` moves by
+        ``(C_00 dC_10 - C_10 dC_00) / (C_00^2 + C_10^2)`` for ``dC = [dtheta]x C``:
+        ``-(C_00 C_20, C_10 C_20, -(C_00^2 + C_10^2)) / (C_00^2 + C_10^2)`` on the
+        attitude (pure heading at level, the tilt's share growing with the pitch).
+        """
+        c = dcm_from_quat(self.q)
+        c00, c10, c20 = c[0, 0], c[1, 0], c[2, 0]
+        h2 = c00 * c00 + c10 * c10
+        h = np.zeros(self.layout.n)
+        h[ATT] = np.array([-c00 * c20, -c10 * c20, h2]) / h2
+        return float(np.arctan2(c10, c00)), h
+
+    def update_heading(self, yaw_rad: float, sigma_rad: float) -> tuple[float, bool]:
+        """The heading measured as ``yaw_rad`` (ZYX yaw, rad) with 1-sigma ``sigma_rad``:
+        a GPS course for a vehicle that moves along its body axis. Gated on the 1-dof
+        chi-square threshold. Returns ``(nis, accepted)``."""
+        if not (np.isfinite(sigma_rad) and sigma_rad > 0.0):
+            raise ValueError(f"sigma_rad must be finite and > 0, got {sigma_rad}")
+        yaw, h = self.heading_model()
+        z = np.array([np.angle(np.exp(1j * (yaw_rad - yaw)))])
+        meas = Measurement(z, h[None, :], np.array([[sigma_rad * sigma_rad]]))
+        nis, ok = self._gated_update(meas, self.gate1)
+        self.counters.course_updates += int(ok)
         return nis, ok
 
     def measure_static_biases(

@@ -401,6 +401,7 @@ class Pipeline(
                 "angle-of-attack updates": nf.counters.aoa_used,
                 "angle-of-attack updates rejected (gate)": nf.counters.aoa_rejected,
                 "heading resets to the GPS course": nf.counters.heading_resets,
+                "heading updates from the GPS course": nf.counters.course_updates,
                 "attitude reopened after rejected velocities": nf.counters.attitude_reopens,
                 "vehicle-model updates counted as coasting": nf.counters.coast_model_updates,
                 "vehicle-model updates counted as the hand-over": (

@@ -378,13 +378,13 @@ class StepMixin:
             nf.reset_to_fix(ned, vel, sig, vacc)
             nf.counters.gps_resets += 1
             nf.reopen_attitude(REOPEN_TILT_SIGMA_RAD, REOPEN_RATE_SIGMA_RPS)
+        was_reset = nf.counters.gps_resets + nf.counters.gps_gap_resets != resets_before
         if self._slip_sigma > 0 and not self._heading_pending:
             # with the no-sideslip model the heading is the course: after a reset of
             # position and velocity, a run of rejected sideslip updates with the
             # velocity accepted, or a state that flies backwards (a heading 180 deg off
             # satisfies both vehicle models, and a tilt relearned from tens of degrees
             # can settle there), a heading that contradicts the GPS course goes onto it
-            was_reset = nf.counters.gps_resets + nf.counters.gps_gap_resets != resets_before
             slip_stuck = res.vel_accepted and nf.consecutive_sideslip_rejects >= RESET_AFTER_REJECTS
             course = _gps_course(vel, vacc)
             if course is not None and (was_reset or slip_stuck or nf.flies_backwards()):
@@ -394,3 +394,13 @@ class StepMixin:
             if course is not None:
                 nf.set_heading(*course)
                 self._heading_pending = False
+        elif self._heading_is_course and was_reset:
+            # a vehicle that moves along its body axis measures its heading by the course
+            # when position and velocity go onto a fix after a coast or a run of rejects:
+            # the reset dropped what the fixes had told the heading through the velocity,
+            # and the coast's heading has drifted (learned again through the linearised
+            # velocity from there, it left `ground`'s tunnel exit over-sure; docs/design.md)
+            course = _gps_course(vel, vacc, n_sigma=1.0)
+            if course is not None and not nf.update_heading(*course)[1]:
+                nf.set_heading(*_gps_course(vel, vacc))  # a heading the course contradicts
+                nf.counters.heading_resets += 1

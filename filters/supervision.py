@@ -98,6 +98,7 @@ class Counters:
     aoa_used: int = 0
     aoa_rejected: int = 0
     heading_resets: int = 0
+    course_updates: int = 0
     attitude_reopens: int = 0
     coast_model_updates: int = 0
     handover_model_updates: int = 0
