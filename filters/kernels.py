@@ -1324,40 +1324,44 @@ def held_rows(chmask: np.ndarray, nfmask: np.ndarray, excluded: int):
 
 
 @njit(cache=True)
-def flat_line_runs(prev: np.ndarray, a: np.ndarray, run: np.ndarray, flat: np.ndarray, n_flat: int):
-    """The flat-line test over a block of readings (``faults.ChannelMonitor``).
+def flat_line_runs(
+    prev: np.ndarray, a: np.ndarray, run: np.ndarray, flat: np.ndarray, n_flat: int, d2: np.ndarray
+) -> np.ndarray:
+    """The flat-line test over a block of readings (``faults.ChannelMonitor``), in place.
 
     ``prev`` (2, N) the two readings before the block, ``a`` (K, N) the block's; ``run``
     (N,) each channel's repeats of its last reading so far and ``flat`` (N,) whether it
-    was flat (``n_flat`` identical readings in a row). Returns the new ``run`` and
-    ``flat``, the rises of the flat flag as (sample, channel) rows by channel then
-    sample, the second differences of the readings (K, N) and the block's last two
-    readings (2, N).
+    was flat (``n_flat`` identical readings in a row). Updates ``run``, ``flat`` and
+    ``prev`` (to the block's last two readings), writes the second differences of the
+    readings into ``d2`` (K, N), and returns the rises of the flat flag as (sample,
+    channel) rows by channel then sample.
     """
     k, n = a.shape
-    ext = np.empty((k + 2, n))
-    ext[0:2] = prev
-    ext[2:] = a
-    run_out = run.copy()
-    flat_out = flat.copy()
     rises = np.empty((k * n, 2), np.int64)
     m = 0
     for c in range(n):
         r = run[c]
         was = flat[c]
+        p1 = prev[0, c]  # the reading two before, then one before, the current one
+        p2 = prev[1, c]
         for i in range(k):
+            x = a[i, c]
             # NaN never repeats
-            r = r + 1 if ext[i + 2, c] == ext[i + 1, c] else 0
+            r = r + 1 if x == p2 else 0
             now = r + 1 >= n_flat
             if now and not was:
                 rises[m, 0] = i
                 rises[m, 1] = c
                 m += 1
             was = now
-        run_out[c] = r
-        flat_out[c] = was
-    d2 = ext[2:] - 2.0 * ext[1:-1] + ext[:-2]
-    return run_out, flat_out, rises[:m].copy(), d2, ext[k:].copy()
+            d2[i, c] = x - 2.0 * p2 + p1
+            p1 = p2
+            p2 = x
+        run[c] = r
+        flat[c] = was
+        prev[0, c] = p1
+        prev[1, c] = p2
+    return rises[:m]
 
 
 @njit(cache=True)
