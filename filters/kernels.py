@@ -897,6 +897,26 @@ def geometry_rate_jacobian(
 
 
 @njit(cache=True)
+def compensate(xs: np.ndarray, x_hat: np.ndarray, se: np.ndarray, phi_hat: np.ndarray) -> None:
+    """The forecast's compensation of a block's features, in place (``StepMixin._block``).
+
+    ``x_hat`` (9,) the forecast ``[w, wdot, f]``; writes ``phi_hat`` (12,) ``[wdot, f]``
+    and the rate products ``(wx^2, wy^2, wz^2, wy wz, wx wz, wx wy)``, and takes
+    ``se @ phi_hat`` (``se`` (k, 12) the compensation matrix) from every row of ``xs``
+    (K, k).
+    """
+    wx, wy, wz = x_hat[0], x_hat[1], x_hat[2]
+    for i in range(6):
+        phi_hat[i] = x_hat[3 + i]
+    phi_hat[6], phi_hat[7], phi_hat[8] = wx * wx, wy * wy, wz * wz
+    phi_hat[9], phi_hat[10], phi_hat[11] = wy * wz, wx * wz, wx * wy
+    t = se @ phi_hat
+    for s in range(xs.shape[0]):
+        for j in range(xs.shape[1]):
+            xs[s, j] -= t[j]
+
+
+@njit(cache=True)
 def block_means(
     xs: np.ndarray,
     bad: np.ndarray,
@@ -946,6 +966,55 @@ def block_means(
             if quad.shape[0]:
                 quad = quad - r[m - nq :]
     return mean, quad, d, r
+
+
+@njit(cache=True)
+def extrapolated_load(
+    f_mean: np.ndarray,
+    sg_f: np.ndarray,
+    geo: np.ndarray,
+    first: bool,
+    w_now: float,
+    w_prev: float,
+    f_prev: np.ndarray,
+    sg_prev: np.ndarray,
+):
+    """The load the lift law reads at a block's end (``StepMixin._block``, which says why).
+
+    ``f_mean`` (3,) the block's mean force less the biases, ``sg_f`` (3, nd) its
+    sensitivity to the geometry states (estimates ``geo`` (nd,)), or (0, 0) without
+    them. Unless ``first``, the line through the last block's ``f_prev`` (3,) and
+    ``sg_prev`` ((0, 0): none) and this one's, at the weights ``w_now``, ``w_prev``
+    (``vehicle_model.load_extrapolation_weights``). Returns the block's load less
+    ``sg_f geo`` (3,), the extrapolated load (3,) and its sensitivity (``sg_f`` when not
+    extrapolated).
+    """
+    if sg_f.shape[0]:
+        f = f_mean - sg_f @ geo
+    else:
+        f = f_mean.copy()
+    if first:
+        return f, f, sg_f
+    f_load = w_now * f + w_prev * f_prev
+    if sg_f.shape[0] and sg_prev.shape[0]:
+        return f, f_load, w_now * sg_f + w_prev * sg_prev
+    return f, f_load, sg_f
+
+
+@njit(cache=True)
+def lift_load(f_b: np.ndarray, load_cov: np.ndarray, sin_a: float, cos_a: float, speed: float):
+    """The lift law's load (``NavFilter.set_load``, which says why): the lift axis
+    ``[sin a, 0, -cos a]`` (3,), ``u = n_w / V^2`` of the force ``f_b`` (3,) and its
+    variance from the force's noise ``load_cov`` (3, 3; (0, 0): none, 0)."""
+    axis = np.empty(3)
+    axis[0], axis[1], axis[2] = sin_a, 0.0, -cos_a
+    n_w = axis @ f_b
+    # products, not powers: a diverged speed gives 0 here, not an overflow
+    speed2 = speed * speed
+    u_var = 0.0
+    if load_cov.shape[0]:
+        u_var = (axis @ load_cov @ axis) / speed2 / speed2
+    return axis, n_w / speed2, u_var
 
 
 @njit(cache=True)
