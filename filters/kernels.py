@@ -653,8 +653,9 @@ def error_dynamics(
 
 
 @njit(cache=True)
-def transition(fc: np.ndarray, t: float) -> np.ndarray:
-    """``I + F t + (F t)^2 / 2 + (F t)^3 / 6`` (n, n) from ``F``'s navigation rows (12, n).
+def transition(fc: np.ndarray, t: float, phi: np.ndarray) -> np.ndarray:
+    """``I + F t + (F t)^2 / 2 + (F t)^3 / 6`` (n, n) from ``F``'s navigation rows (12, n),
+    written into ``phi`` (n, n) and returned.
 
     ``F t = [[A, B], [0, 0]]``, so ``(F t)^m = A^(m-1) [A, B]`` and the series needs only
     the navigation rows, in Horner form ``(I + A (I + A / 3) / 2) [A, B]``.
@@ -669,19 +670,24 @@ def transition(fc: np.ndarray, t: float) -> np.ndarray:
     b *= 0.5
     for i in range(N_NAV):
         b[i, i] += 1.0
-    phi = np.eye(n)
+    phi[:] = 0.0
+    for i in range(n):
+        phi[i, i] = 1.0
     phi[:N_NAV] += b @ ft
     return phi
 
 
 @njit(cache=True)
-def rotated_nav_noise(c: np.ndarray, q12_body: np.ndarray, q_walks: np.ndarray) -> np.ndarray:
-    """Process noise (n, n): ``q_walks`` with the navigation block ``T q12_body T^T``,
-    ``T`` block-diagonal ``(C, C, C, I)`` (body-frame noise blocks rotated to NED)."""
+def rotated_nav_noise(
+    c: np.ndarray, q12_body: np.ndarray, q_walks: np.ndarray, q: np.ndarray
+) -> np.ndarray:
+    """Process noise (n, n), written into ``q`` (n, n) and returned: ``q_walks`` with the
+    navigation block ``T q12_body T^T``, ``T`` block-diagonal ``(C, C, C, I)`` (body-frame
+    noise blocks rotated to NED)."""
     t12 = np.eye(N_NAV)
     for b in range(3):
         t12[3 * b : 3 * b + 3, 3 * b : 3 * b + 3] = c
-    q = q_walks.copy()
+    q[:] = q_walks
     q[:N_NAV, :N_NAV] = t12 @ q12_body @ t12.T
     return q
 
@@ -704,14 +710,16 @@ def propagation_matrices(
     t: float,
     q12_body: np.ndarray,
     q_walks: np.ndarray,
+    phi: np.ndarray,
+    q: np.ndarray,
 ):
-    """A block's transition and process noise ``(F, Q)`` (n, n) each
-    (``NavFilter.propagation_matrices``): :func:`error_dynamics` through
-    :func:`transition` over ``t`` s, and :func:`rotated_nav_noise`."""
+    """A block's transition and process noise ``(F, Q)`` (n, n) each, written into ``phi``
+    and ``q`` and returned (``NavFilter.propagation_matrices``): :func:`error_dynamics`
+    through :func:`transition` over ``t`` s, and :func:`rotated_nav_noise`."""
     fc = error_dynamics(
         fc_base, f_n, c, bias_effect_f, bias0, quad_into, quad6_d, w, sg, dr0, dr, axes, solve_t
     )
-    return transition(fc, t), rotated_nav_noise(c, q12_body, q_walks)
+    return transition(fc, t, phi), rotated_nav_noise(c, q12_body, q_walks, q)
 
 
 @njit(cache=True)
@@ -760,6 +768,8 @@ def propagate_block(
     solve_t: np.ndarray,
     q12_body: np.ndarray,
     q_walks: np.ndarray,
+    phi: np.ndarray,
+    qn: np.ndarray,
 ):
     """One block's nominal propagation and its transition and noise, before filterpy's
     predict (``NavFilter.propagate``).
@@ -769,7 +779,8 @@ def propagate_block(
     then :func:`propagation_matrices` at the block-start ``C``, the block's mean force
     shrunk by the attitude's uncertainty (:func:`shrunk_force`) and the block-end rate.
     Returns the rates at the K samples (K, 3), the new ``q``, ``pos``, ``vel`` and rate
-    (3,), ``C_nb`` at the block start, the block's mean NED force (3,), F and Q (n, n).
+    (3,), ``C_nb`` at the block start and the block's mean NED force (3,); writes F and Q
+    (n, n) into ``phi`` and ``qn``.
     """
     bw, bf = feature_offset(bias, sg, geo)
     body = body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps)
@@ -779,11 +790,11 @@ def propagate_block(
     k = wdot.shape[0]
     w_end = w[k - 1].copy()
     f_j = shrunk_force(f_n, p[_ATT : _ATT + 3, _ATT : _ATT + 3])
-    phi, qn = propagation_matrices(
+    propagation_matrices(
         fc_base, f_j, c0, bias_effect_f, bias0, quad_into, quad6_d, w_end, sg, dr0, geo, axes,
-        solve_t, k * dt, q12_body, q_walks,
+        solve_t, k * dt, q12_body, q_walks, phi, qn,
     )  # fmt: skip
-    return w, q_new, pos_new, vel_new, w_end, c0, f_n, phi, qn
+    return w, q_new, pos_new, vel_new, w_end, c0, f_n
 
 
 @njit(cache=True)
@@ -870,6 +881,51 @@ def load_jacobian(
         for c in range(solve_rep.shape[1]):
             out[r, c] = solve_rep[r, c] * load[c]
     return out
+
+
+@njit(cache=True)
+def position_sensitivity(
+    wdot: np.ndarray,
+    wdot_var: np.ndarray,
+    inv_k: float,
+    clear2: float,
+    w: np.ndarray,
+    t_half: float,
+    axes: np.ndarray,
+    solve_rep: np.ndarray,
+) -> np.ndarray:
+    """The features' sensitivity (k, 3N) to the sensor positions over a block
+    (``StepMixin._block``, which says why): :func:`geometry_jacobian` at the angular
+    acceleration ``wdot`` (3,) shrunk by its noise ``wdot_var * inv_k`` (3,)
+    (:func:`shrink`, ``clear2``) and at the rate ``w + t_half wdot`` (the block's middle)."""
+    var = wdot_var * inv_k
+    wd = shrink(wdot, var, clear2)
+    return geometry_jacobian(wd, w + t_half * wd, axes, solve_rep)
+
+
+@njit(cache=True)
+def history_row(
+    h: np.ndarray,
+    w: np.ndarray,
+    mean: np.ndarray,
+    bias: np.ndarray,
+    wd_smooth: np.ndarray,
+    gain: float,
+) -> np.ndarray:
+    """A block's row of the forecast's history, in place (``StepMixin._block``): ``h``
+    (9,) takes the rate ``w`` (3,) and the block's ``[wdot, f]`` less the biases (the first
+    six of ``mean`` and ``bias``), which is returned (6,); the smoothed angular
+    acceleration ``wd_smooth`` (3,) moves towards it by ``gain``."""
+    mean6 = np.empty(6)
+    for i in range(6):
+        mean6[i] = mean[i] - bias[i]
+    for i in range(3):
+        h[i] = w[i]
+    for i in range(6):
+        h[3 + i] = mean6[i]
+    for i in range(3):
+        wd_smooth[i] += gain * (mean6[i] - wd_smooth[i])
+    return mean6
 
 
 @njit(cache=True)

@@ -96,9 +96,21 @@ class StepMixin:
             # 0.6-0.9 % long by uav-survey's end on a truth without mounting errors; notes,
             # "The turns' forward-velocity error").
             wd_sg = self._wd_smooth if phi_hat is None else phi_hat[0:3]
-            wd_sg = kernels.shrink(wd_sg, self.wdot_jacobian_var * (1.0 / kk), _WDOT_CLEAR2)
-            f_sg = self._last_mean[3:6] - nf.bias[3:6] if phi_hat is None else phi_hat[3:6]
-            sg = nf.geometry_sg(f_sg, wd_sg, nf.w + 0.5 * kk * dt * wd_sg)
+            if nf.layout.n_cal:
+                wd_sg = kernels.shrink(wd_sg, self.wdot_jacobian_var * (1.0 / kk), _WDOT_CLEAR2)
+                f_sg = self._last_mean[3:6] - nf.bias[3:6] if phi_hat is None else phi_hat[3:6]
+                sg = nf.geometry_sg(f_sg, wd_sg, nf.w + 0.5 * kk * dt * wd_sg)
+            else:  # the positions alone: the same, in one kernel
+                sg = kernels.position_sensitivity(
+                    wd_sg,
+                    self.wdot_jacobian_var,
+                    1.0 / kk,
+                    _WDOT_CLEAR2,
+                    nf.w,
+                    0.5 * kk * dt,
+                    nf.sensor_axes_b,
+                    nf._solve_rep,
+                )
             if p_bound is not None:
                 blk = slice(i0 + 1, i1 + 1)
                 sg_true = nf.geometry_sg(
@@ -193,14 +205,13 @@ class StepMixin:
             # a sliding window: keep the rows the next forecasts read
             self._hist[:window] = self._hist[row - window : row]
             row = window
-        h = self._hist[row]
-        h[0:3] = nf.w
-        mean6 = self._last_mean[0:6] - nf.bias[0:6]  # the block's [wdot, f], biases removed
-        h[3:9] = mean6
+        # the history's row: the rate and the block's [wdot, f], biases removed (mean6)
+        mean6 = kernels.history_row(
+            self._hist[row], nf.w, self._last_mean, nf.bias, self._wd_smooth, self._smooth_gain
+        )
         self._h_n = row + 1
         if rest is not None:
             rest.observe_block(nf.t_s, self._last_mean[0:6], n_ok)
-        self._wd_smooth += self._smooth_gain * (mean6[0:3] - self._wd_smooth)
         if nf.layout.n_aoa:
             # the block mean lags the block end by (k - 1) / 2 samples: extrapolate it
             # there (load_extrapolation_weights)
