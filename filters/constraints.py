@@ -181,15 +181,13 @@ class ConstraintsMixin:
             s, ds, _ = min_jerk_step((speed - 0.8 * v_lof) / (0.2 * v_lof))
             self._lift_w, self._lift_dw = float(s), float(ds) / (0.2 * v_lof)
         if self.aoa_k > 0.0 and speed > 1.0:
-            self._lift_axis = np.array([math.sin(a), 0.0, -math.cos(a)])  # n_w = this . f
-            n_w = self._lift_axis @ f_b_mps2
-            # products, not powers: a diverged speed gives 0 here, not an OverflowError
-            speed2 = speed * speed
-            self._lift_u = float(n_w) / speed2
-            ax = self._lift_axis
-            self._lift_u_var = (
-                0.0 if load_cov is None else float(ax @ load_cov @ ax) / speed2 / speed2
-            )
+            self._lift_axis, self._lift_u, self._lift_u_var = kernels.lift_load(
+                np.asarray(f_b_mps2, dtype=float),
+                kernels.ABSENT if load_cov is None else np.asarray(load_cov, dtype=float),
+                math.sin(a),
+                math.cos(a),
+                speed,
+            )  # n_w = _lift_axis . f
             recent = self._lift_u_recent
             recent.append(self._lift_u)
             if len(recent) > LIFT_JACOBIAN_LAG_BLOCKS + 1:

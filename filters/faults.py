@@ -180,10 +180,11 @@ class ChannelMonitor:
 
         # -- flat line: repeats of the previous reading, all channels (each rise of the
         # flat flag is an alarm; the first one opens the event); and the second
-        # differences for the noise level
-        self._run, flat_now, rises, d2, self._prev = kernels.flat_line_runs(
-            self._prev, a, self._run, self._flat, FLAT_RUN
-        )
+        # differences for the noise level, straight into its window when they fit
+        w0 = self._win_n
+        direct = w0 + k <= NOISE_WINDOW
+        d2 = self._win[w0 : w0 + k] if direct else np.empty((k, self.n_channels))
+        rises = kernels.flat_line_runs(self._prev, a, self._run, self._flat, FLAT_RUN, d2)
         for kh, c in rises.tolist():  # by channel, then time
             value = a[kh, c]
             if value == 0.0:
@@ -193,8 +194,13 @@ class ChannelMonitor:
             else:
                 kind = "stuck"
             self._isolate(c, kind, float(t[kh]), float(t[kh]) - (FLAT_RUN - 1) * interval())
-        self._flat = flat_now
         # -- noise level: the median square of second differences over whole windows
+        if direct:
+            self._win_n = w0 + k
+            if self._win_n == NOISE_WINDOW:
+                self._win_n = 0
+                self._noise_window(float(t[k - 1]), interval)
+            return
         k0 = 0
         while k0 < k:
             k1 = min(k, k0 + NOISE_WINDOW - self._win_n)
@@ -204,17 +210,22 @@ class ChannelMonitor:
             if self._win_n < NOISE_WINDOW:
                 break
             self._win_n = 0
-            if np.isnan(self._win).any():
-                with np.errstate(all="ignore"), warnings.catch_warnings():
-                    warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN channel
-                    ratio = np.nanmedian(self._win * self._win, axis=0) / self._d2_median
-            else:  # the same value, compiled
-                ratio = kernels.column_median_squares(self._win) / self._d2_median
-            noisy = ratio > NOISY_RATIO
-            for c in np.flatnonzero(noisy & ~self._noisy).tolist():
-                onset = float(t[k1 - 1]) - (NOISE_WINDOW - 1) * interval()
-                self._isolate(c, "noisy", float(t[k1 - 1]), onset)
-            self._noisy = noisy
+            self._noise_window(float(t[k1 - 1]), interval)
+
+    def _noise_window(self, t_end: float, interval) -> None:
+        """The noise-level test on a whole window ending at ``t_end`` (s); ``interval()``
+        the sample interval, s."""
+        if np.isnan(self._win).any():
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN channel
+                ratio = np.nanmedian(self._win * self._win, axis=0) / self._d2_median
+        else:  # the same value, compiled
+            ratio = kernels.column_median_squares(self._win) / self._d2_median
+        noisy = ratio > NOISY_RATIO
+        for c in np.flatnonzero(noisy & ~self._noisy).tolist():
+            onset = t_end - (NOISE_WINDOW - 1) * interval()
+            self._isolate(c, "noisy", t_end, onset)
+        self._noisy = noisy
 
     # ----------------------------------------------------------------- parity
     def observe_parity(self, t_s: float, innovation: np.ndarray, cov: np.ndarray) -> None:

@@ -653,8 +653,9 @@ def error_dynamics(
 
 
 @njit(cache=True)
-def transition(fc: np.ndarray, t: float) -> np.ndarray:
-    """``I + F t + (F t)^2 / 2 + (F t)^3 / 6`` (n, n) from ``F``'s navigation rows (12, n).
+def transition(fc: np.ndarray, t: float, phi: np.ndarray) -> np.ndarray:
+    """``I + F t + (F t)^2 / 2 + (F t)^3 / 6`` (n, n) from ``F``'s navigation rows (12, n),
+    written into ``phi`` (n, n) and returned.
 
     ``F t = [[A, B], [0, 0]]``, so ``(F t)^m = A^(m-1) [A, B]`` and the series needs only
     the navigation rows, in Horner form ``(I + A (I + A / 3) / 2) [A, B]``.
@@ -669,19 +670,24 @@ def transition(fc: np.ndarray, t: float) -> np.ndarray:
     b *= 0.5
     for i in range(N_NAV):
         b[i, i] += 1.0
-    phi = np.eye(n)
+    phi[:] = 0.0
+    for i in range(n):
+        phi[i, i] = 1.0
     phi[:N_NAV] += b @ ft
     return phi
 
 
 @njit(cache=True)
-def rotated_nav_noise(c: np.ndarray, q12_body: np.ndarray, q_walks: np.ndarray) -> np.ndarray:
-    """Process noise (n, n): ``q_walks`` with the navigation block ``T q12_body T^T``,
-    ``T`` block-diagonal ``(C, C, C, I)`` (body-frame noise blocks rotated to NED)."""
+def rotated_nav_noise(
+    c: np.ndarray, q12_body: np.ndarray, q_walks: np.ndarray, q: np.ndarray
+) -> np.ndarray:
+    """Process noise (n, n), written into ``q`` (n, n) and returned: ``q_walks`` with the
+    navigation block ``T q12_body T^T``, ``T`` block-diagonal ``(C, C, C, I)`` (body-frame
+    noise blocks rotated to NED)."""
     t12 = np.eye(N_NAV)
     for b in range(3):
         t12[3 * b : 3 * b + 3, 3 * b : 3 * b + 3] = c
-    q = q_walks.copy()
+    q[:] = q_walks
     q[:N_NAV, :N_NAV] = t12 @ q12_body @ t12.T
     return q
 
@@ -704,14 +710,16 @@ def propagation_matrices(
     t: float,
     q12_body: np.ndarray,
     q_walks: np.ndarray,
+    phi: np.ndarray,
+    q: np.ndarray,
 ):
-    """A block's transition and process noise ``(F, Q)`` (n, n) each
-    (``NavFilter.propagation_matrices``): :func:`error_dynamics` through
-    :func:`transition` over ``t`` s, and :func:`rotated_nav_noise`."""
+    """A block's transition and process noise ``(F, Q)`` (n, n) each, written into ``phi``
+    and ``q`` and returned (``NavFilter.propagation_matrices``): :func:`error_dynamics`
+    through :func:`transition` over ``t`` s, and :func:`rotated_nav_noise`."""
     fc = error_dynamics(
         fc_base, f_n, c, bias_effect_f, bias0, quad_into, quad6_d, w, sg, dr0, dr, axes, solve_t
     )
-    return transition(fc, t), rotated_nav_noise(c, q12_body, q_walks)
+    return transition(fc, t, phi), rotated_nav_noise(c, q12_body, q_walks, q)
 
 
 @njit(cache=True)
@@ -760,6 +768,8 @@ def propagate_block(
     solve_t: np.ndarray,
     q12_body: np.ndarray,
     q_walks: np.ndarray,
+    phi: np.ndarray,
+    qn: np.ndarray,
 ):
     """One block's nominal propagation and its transition and noise, before filterpy's
     predict (``NavFilter.propagate``).
@@ -769,7 +779,8 @@ def propagate_block(
     then :func:`propagation_matrices` at the block-start ``C``, the block's mean force
     shrunk by the attitude's uncertainty (:func:`shrunk_force`) and the block-end rate.
     Returns the rates at the K samples (K, 3), the new ``q``, ``pos``, ``vel`` and rate
-    (3,), ``C_nb`` at the block start, the block's mean NED force (3,), F and Q (n, n).
+    (3,), ``C_nb`` at the block start and the block's mean NED force (3,); writes F and Q
+    (n, n) into ``phi`` and ``qn``.
     """
     bw, bf = feature_offset(bias, sg, geo)
     body = body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps)
@@ -779,11 +790,11 @@ def propagate_block(
     k = wdot.shape[0]
     w_end = w[k - 1].copy()
     f_j = shrunk_force(f_n, p[_ATT : _ATT + 3, _ATT : _ATT + 3])
-    phi, qn = propagation_matrices(
+    propagation_matrices(
         fc_base, f_j, c0, bias_effect_f, bias0, quad_into, quad6_d, w_end, sg, dr0, geo, axes,
-        solve_t, k * dt, q12_body, q_walks,
+        solve_t, k * dt, q12_body, q_walks, phi, qn,
     )  # fmt: skip
-    return w, q_new, pos_new, vel_new, w_end, c0, f_n, phi, qn
+    return w, q_new, pos_new, vel_new, w_end, c0, f_n
 
 
 @njit(cache=True)
@@ -873,6 +884,51 @@ def load_jacobian(
 
 
 @njit(cache=True)
+def position_sensitivity(
+    wdot: np.ndarray,
+    wdot_var: np.ndarray,
+    inv_k: float,
+    clear2: float,
+    w: np.ndarray,
+    t_half: float,
+    axes: np.ndarray,
+    solve_rep: np.ndarray,
+) -> np.ndarray:
+    """The features' sensitivity (k, 3N) to the sensor positions over a block
+    (``StepMixin._block``, which says why): :func:`geometry_jacobian` at the angular
+    acceleration ``wdot`` (3,) shrunk by its noise ``wdot_var * inv_k`` (3,)
+    (:func:`shrink`, ``clear2``) and at the rate ``w + t_half wdot`` (the block's middle)."""
+    var = wdot_var * inv_k
+    wd = shrink(wdot, var, clear2)
+    return geometry_jacobian(wd, w + t_half * wd, axes, solve_rep)
+
+
+@njit(cache=True)
+def history_row(
+    h: np.ndarray,
+    w: np.ndarray,
+    mean: np.ndarray,
+    bias: np.ndarray,
+    wd_smooth: np.ndarray,
+    gain: float,
+) -> np.ndarray:
+    """A block's row of the forecast's history, in place (``StepMixin._block``): ``h``
+    (9,) takes the rate ``w`` (3,) and the block's ``[wdot, f]`` less the biases (the first
+    six of ``mean`` and ``bias``), which is returned (6,); the smoothed angular
+    acceleration ``wd_smooth`` (3,) moves towards it by ``gain``."""
+    mean6 = np.empty(6)
+    for i in range(6):
+        mean6[i] = mean[i] - bias[i]
+    for i in range(3):
+        h[i] = w[i]
+    for i in range(6):
+        h[3 + i] = mean6[i]
+    for i in range(3):
+        wd_smooth[i] += gain * (mean6[i] - wd_smooth[i])
+    return mean6
+
+
+@njit(cache=True)
 def geometry_rate_jacobian(
     w: np.ndarray, dr: np.ndarray, axes: np.ndarray, solve_t: np.ndarray
 ) -> np.ndarray:
@@ -894,6 +950,26 @@ def geometry_rate_jacobian(
 
 
 # -------- the measurement models
+
+
+@njit(cache=True)
+def compensate(xs: np.ndarray, x_hat: np.ndarray, se: np.ndarray, phi_hat: np.ndarray) -> None:
+    """The forecast's compensation of a block's features, in place (``StepMixin._block``).
+
+    ``x_hat`` (9,) the forecast ``[w, wdot, f]``; writes ``phi_hat`` (12,) ``[wdot, f]``
+    and the rate products ``(wx^2, wy^2, wz^2, wy wz, wx wz, wx wy)``, and takes
+    ``se @ phi_hat`` (``se`` (k, 12) the compensation matrix) from every row of ``xs``
+    (K, k).
+    """
+    wx, wy, wz = x_hat[0], x_hat[1], x_hat[2]
+    for i in range(6):
+        phi_hat[i] = x_hat[3 + i]
+    phi_hat[6], phi_hat[7], phi_hat[8] = wx * wx, wy * wy, wz * wz
+    phi_hat[9], phi_hat[10], phi_hat[11] = wy * wz, wx * wz, wx * wy
+    t = se @ phi_hat
+    for s in range(xs.shape[0]):
+        for j in range(xs.shape[1]):
+            xs[s, j] -= t[j]
 
 
 @njit(cache=True)
@@ -946,6 +1022,55 @@ def block_means(
             if quad.shape[0]:
                 quad = quad - r[m - nq :]
     return mean, quad, d, r
+
+
+@njit(cache=True)
+def extrapolated_load(
+    f_mean: np.ndarray,
+    sg_f: np.ndarray,
+    geo: np.ndarray,
+    first: bool,
+    w_now: float,
+    w_prev: float,
+    f_prev: np.ndarray,
+    sg_prev: np.ndarray,
+):
+    """The load the lift law reads at a block's end (``StepMixin._block``, which says why).
+
+    ``f_mean`` (3,) the block's mean force less the biases, ``sg_f`` (3, nd) its
+    sensitivity to the geometry states (estimates ``geo`` (nd,)), or (0, 0) without
+    them. Unless ``first``, the line through the last block's ``f_prev`` (3,) and
+    ``sg_prev`` ((0, 0): none) and this one's, at the weights ``w_now``, ``w_prev``
+    (``vehicle_model.load_extrapolation_weights``). Returns the block's load less
+    ``sg_f geo`` (3,), the extrapolated load (3,) and its sensitivity (``sg_f`` when not
+    extrapolated).
+    """
+    if sg_f.shape[0]:
+        f = f_mean - sg_f @ geo
+    else:
+        f = f_mean.copy()
+    if first:
+        return f, f, sg_f
+    f_load = w_now * f + w_prev * f_prev
+    if sg_f.shape[0] and sg_prev.shape[0]:
+        return f, f_load, w_now * sg_f + w_prev * sg_prev
+    return f, f_load, sg_f
+
+
+@njit(cache=True)
+def lift_load(f_b: np.ndarray, load_cov: np.ndarray, sin_a: float, cos_a: float, speed: float):
+    """The lift law's load (``NavFilter.set_load``, which says why): the lift axis
+    ``[sin a, 0, -cos a]`` (3,), ``u = n_w / V^2`` of the force ``f_b`` (3,) and its
+    variance from the force's noise ``load_cov`` (3, 3; (0, 0): none, 0)."""
+    axis = np.empty(3)
+    axis[0], axis[1], axis[2] = sin_a, 0.0, -cos_a
+    n_w = axis @ f_b
+    # products, not powers: a diverged speed gives 0 here, not an overflow
+    speed2 = speed * speed
+    u_var = 0.0
+    if load_cov.shape[0]:
+        u_var = (axis @ load_cov @ axis) / speed2 / speed2
+    return axis, n_w / speed2, u_var
 
 
 @njit(cache=True)
@@ -1324,40 +1449,44 @@ def held_rows(chmask: np.ndarray, nfmask: np.ndarray, excluded: int):
 
 
 @njit(cache=True)
-def flat_line_runs(prev: np.ndarray, a: np.ndarray, run: np.ndarray, flat: np.ndarray, n_flat: int):
-    """The flat-line test over a block of readings (``faults.ChannelMonitor``).
+def flat_line_runs(
+    prev: np.ndarray, a: np.ndarray, run: np.ndarray, flat: np.ndarray, n_flat: int, d2: np.ndarray
+) -> np.ndarray:
+    """The flat-line test over a block of readings (``faults.ChannelMonitor``), in place.
 
     ``prev`` (2, N) the two readings before the block, ``a`` (K, N) the block's; ``run``
     (N,) each channel's repeats of its last reading so far and ``flat`` (N,) whether it
-    was flat (``n_flat`` identical readings in a row). Returns the new ``run`` and
-    ``flat``, the rises of the flat flag as (sample, channel) rows by channel then
-    sample, the second differences of the readings (K, N) and the block's last two
-    readings (2, N).
+    was flat (``n_flat`` identical readings in a row). Updates ``run``, ``flat`` and
+    ``prev`` (to the block's last two readings), writes the second differences of the
+    readings into ``d2`` (K, N), and returns the rises of the flat flag as (sample,
+    channel) rows by channel then sample.
     """
     k, n = a.shape
-    ext = np.empty((k + 2, n))
-    ext[0:2] = prev
-    ext[2:] = a
-    run_out = run.copy()
-    flat_out = flat.copy()
     rises = np.empty((k * n, 2), np.int64)
     m = 0
     for c in range(n):
         r = run[c]
         was = flat[c]
+        p1 = prev[0, c]  # the reading two before, then one before, the current one
+        p2 = prev[1, c]
         for i in range(k):
+            x = a[i, c]
             # NaN never repeats
-            r = r + 1 if ext[i + 2, c] == ext[i + 1, c] else 0
+            r = r + 1 if x == p2 else 0
             now = r + 1 >= n_flat
             if now and not was:
                 rises[m, 0] = i
                 rises[m, 1] = c
                 m += 1
             was = now
-        run_out[c] = r
-        flat_out[c] = was
-    d2 = ext[2:] - 2.0 * ext[1:-1] + ext[:-2]
-    return run_out, flat_out, rises[:m].copy(), d2, ext[k:].copy()
+            d2[i, c] = x - 2.0 * p2 + p1
+            p1 = p2
+            p2 = x
+        run[c] = r
+        flat[c] = was
+        prev[0, c] = p1
+        prev[1, c] = p2
+    return rises[:m]
 
 
 @njit(cache=True)

@@ -62,7 +62,8 @@ class NominalMixin:
         # force's and gravity's second-order means for the velocity error's frame (the
         # truth's-force sign, tried, was worse: docs/design.md, "Process model"); then
         # the block's F and Q (propagation_matrices, at force_for_jacobian's force)
-        w, self.q, self.pos, self.vel, self.w, c0, f_n, phi, q = kernels.propagate_block(
+        phi, q = self._fq_out  # filterpy's predict reads them and keeps neither
+        w, self.q, self.pos, self.vel, self.w, c0, f_n = kernels.propagate_block(
             self.q,
             self.pos,
             self.vel,
@@ -93,6 +94,8 @@ class NominalMixin:
             solve_t,
             self._q12_body(k, dt),
             self._q_walks(t),
+            phi,
+            q,
         )
         self._last_wdot = wdot[-1].copy()
         self._last_f = f[-1].copy()

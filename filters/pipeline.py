@@ -215,6 +215,7 @@ class Pipeline(
         self._mon_n = 0  # samples the health tests have seen (global count)
         self._nfmask = np.empty(0, dtype=np.int64)  # bit i: channel i non-finite
         self._chmask = np.empty(0, dtype=np.int64)  # bit i: channel i non-finite or saturated
+        self._last_bad = -1  # the last stored row (global) with a bit in _chmask; -1: none
         self._excl = np.empty(0, dtype=np.int64)  # bit i: channel i excluded at the sample
         #: Channels excluded from the samples arriving now (bitmask), and those the
         #: filter's model is set for (:meth:`_switch_solve`).

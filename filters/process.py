@@ -130,6 +130,8 @@ class ProcessMixin:
             t,
             self._q12_body(k, dt),
             self._q_walks(t),
+            np.empty((self.layout.n, self.layout.n)),
+            np.empty((self.layout.n, self.layout.n)),
         )
 
     def _q_walks(self, t: float) -> np.ndarray:

@@ -7,7 +7,6 @@ from filterpy.kalman import predict as kf_predict
 from filterpy.kalman import update as kf_update
 
 from filters import kernels
-from filters.algebra import shrink_to_size
 from filters.alignment import _gps_course
 from filters.forecast import (
     FORECAST_ERROR_BLOCKS,
@@ -40,6 +39,8 @@ from ngnav.rotation import dcm_from_quat
 #: How far (in its noise's sigmas) the angular acceleration the sensor positions' Jacobian
 #: reads must stand from zero to be read at all (see ``StepMixin._block``).
 WDOT_JACOBIAN_CLEAR_SIGMAS = 3.0
+#: Its square, as :func:`filters.kernels.shrink` takes it (``algebra.shrink_to_size``).
+_WDOT_CLEAR2 = WDOT_JACOBIAN_CLEAR_SIGMAS * WDOT_JACOBIAN_CLEAR_SIGMAS
 
 
 class StepMixin:
@@ -71,10 +72,7 @@ class StepMixin:
             x_hat, nfb = self.predictor.forecast(self._hist[row - window : row], e - 1)
             self.n_fallbacks += nfb
             self.block_fallbacks = nfb
-            wx, wy, wz = x_hat[0:3].tolist()
-            phi_hat[0:6] = x_hat[3:9]
-            phi_hat[6:] = (wx * wx, wy * wy, wz * wz, wy * wz, wx * wz, wx * wy)
-            xs -= se @ phi_hat
+            kernels.compensate(xs, x_hat, se, phi_hat)
         self.block_faulty = excluded
         if n_bad:
             fill = self._last_mean if phi_hat is None else phi_hat[self._cols] + nf.bias
@@ -98,11 +96,21 @@ class StepMixin:
             # 0.6-0.9 % long by uav-survey's end on a truth without mounting errors; notes,
             # "The turns' forward-velocity error").
             wd_sg = self._wd_smooth if phi_hat is None else phi_hat[0:3]
-            wd_sg = shrink_to_size(
-                wd_sg, self.wdot_jacobian_var * (1.0 / kk), WDOT_JACOBIAN_CLEAR_SIGMAS
-            )
-            f_sg = self._last_mean[3:6] - nf.bias[3:6] if phi_hat is None else phi_hat[3:6]
-            sg = nf.geometry_sg(f_sg, wd_sg, nf.w + 0.5 * kk * dt * wd_sg)
+            if nf.layout.n_cal:
+                wd_sg = kernels.shrink(wd_sg, self.wdot_jacobian_var * (1.0 / kk), _WDOT_CLEAR2)
+                f_sg = self._last_mean[3:6] - nf.bias[3:6] if phi_hat is None else phi_hat[3:6]
+                sg = nf.geometry_sg(f_sg, wd_sg, nf.w + 0.5 * kk * dt * wd_sg)
+            else:  # the positions alone: the same, in one kernel
+                sg = kernels.position_sensitivity(
+                    wd_sg,
+                    self.wdot_jacobian_var,
+                    1.0 / kk,
+                    _WDOT_CLEAR2,
+                    nf.w,
+                    0.5 * kk * dt,
+                    nf.sensor_axes_b,
+                    nf._solve_rep,
+                )
             if p_bound is not None:
                 blk = slice(i0 + 1, i1 + 1)
                 sg_true = nf.geometry_sg(
@@ -197,14 +205,13 @@ class StepMixin:
             # a sliding window: keep the rows the next forecasts read
             self._hist[:window] = self._hist[row - window : row]
             row = window
-        h = self._hist[row]
-        h[0:3] = nf.w
-        mean6 = self._last_mean[0:6] - nf.bias[0:6]  # the block's [wdot, f], biases removed
-        h[3:9] = mean6
+        # the history's row: the rate and the block's [wdot, f], biases removed (mean6)
+        mean6 = kernels.history_row(
+            self._hist[row], nf.w, self._last_mean, nf.bias, self._wd_smooth, self._smooth_gain
+        )
         self._h_n = row + 1
         if rest is not None:
             rest.observe_block(nf.t_s, self._last_mean[0:6], n_ok)
-        self._wd_smooth += self._smooth_gain * (mean6[0:3] - self._wd_smooth)
         if nf.layout.n_aoa:
             # the block mean lags the block end by (k - 1) / 2 samples: extrapolate it
             # there (load_extrapolation_weights)
@@ -213,22 +220,28 @@ class StepMixin:
             # (its noise: the block means' feature_cov / k, as the weights combine them)
             # (with sensor-position states the load, as the propagation, loses S G dr_hat,
             # and the angle's Jacobian sees dr through it)
-            f_mean = mean6[3:6]
-            sg_f = None
-            if sg is not None:
-                sg_f = sg[3:6]
-                f_mean = f_mean - sg_f @ nf.geometry_estimates()
             k_now = n_ok if 0 < n_ok < kk else kk  # the rows in the mean
-            if self._f_load_prev is None:
-                f_load, w2, sg_load = f_mean, 1.0 / k_now, sg_f
+            first = self._f_load_prev is None
+            if first:
+                w_now, w_prev, w2 = 1.0, 0.0, 1.0 / k_now
             else:
                 w_now, w_prev = load_extrapolation_weights(kk, self._kk_load_prev)
-                f_load = w_now * f_mean + w_prev * self._f_load_prev
                 w2 = w_now**2 / k_now + w_prev**2 / self._k_load_prev
-                sg_load = sg_f
-                if sg_f is not None and self._sg_load_prev is not None:
-                    sg_load = w_now * sg_f + w_prev * self._sg_load_prev
-            nf.set_load(f_load, load_cov=w2 * self._load_noise_cov, sg_f=sg_load)
+            sg_f = None if sg is None else sg[3:6]
+            sg_prev = self._sg_load_prev
+            f_mean, f_load, sg_load = kernels.extrapolated_load(
+                mean6[3:6],
+                kernels.ABSENT if sg_f is None else sg_f,
+                nf.geometry_estimates(),
+                first,
+                w_now,
+                w_prev,
+                kernels.NO_VECTOR if first else self._f_load_prev,
+                kernels.ABSENT if sg_prev is None else sg_prev,
+            )
+            nf.set_load(
+                f_load, load_cov=w2 * self._load_noise_cov, sg_f=None if sg_f is None else sg_load
+            )
             self._f_load_prev, self._k_load_prev = f_mean, k_now
             self._kk_load_prev = kk
             self._sg_load_prev = sg_f

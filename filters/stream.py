@@ -240,6 +240,8 @@ class StreamMixin:
         """Count rows ``g0 .. g1 - 1`` (global) held for a bad channel not in ``excluded``
         (non-finite when one of those is, else saturated); returns the held rows (bool)
         and their number."""
+        if g0 > self._last_bad:  # no bad channel in these rows (and none non-finite)
+            return np.zeros(g1 - g0, dtype=np.bool_), 0
         b = self._base
         bad, n_bad, n_nonfinite, n_saturated = kernels.held_rows(
             self._chmask[g0 - b : g1 - b], self._nfmask[g0 - b : g1 - b], excluded
@@ -287,6 +289,9 @@ class StreamMixin:
         self._ach[r] = a
         self._nfmask[r] = nf_bits
         self._chmask[r] = bad_bits
+        marked = np.flatnonzero(bad_bits)
+        if marked.shape[0]:
+            self._last_bad = self._n + int(marked[-1])
         self._excl[r] = self._excluded
         self._n += m
 
