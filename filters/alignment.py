@@ -160,11 +160,10 @@ class AlignmentMixin:
             roll0, pitch0 = np.deg2rad(ini.roll_deg), np.deg2rad(ini.pitch_deg)
             ts = np.deg2rad(ini.tilt_sigma_deg)
             att_sigma = np.array([ts, ts, np.deg2rad(ini.heading_sigma_deg)])
-        #: The heading is the GPS course (``initial.heading_source = "gps"``).
+        #: The heading is the GPS course (``initial.heading_source = "gps"``); until the
+        #: first one it is the configured heading with its sigma (docs/design.md, "Heading").
         self._heading_is_course = ini.heading_source == "gps"
         self._heading_pending = self._heading_is_course
-        if self._heading_pending:
-            att_sigma[2] = np.deg2rad(30.0)
         q0 = quat_from_euler(roll0, pitch0, yaw0)
         c0 = dcm_from_quat(q0)
         nf.initialise(

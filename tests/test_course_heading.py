@@ -65,3 +65,19 @@ def test_the_course_measures_the_heading_again_after_a_coast():
     counts, _, sigma_cfg, _ = _after_the_tunnel(['initial.heading_source="config"'])
     assert counts["heading updates from the GPS course"] == 0
     assert sigma_cfg > 5.0 * course_sigma
+
+
+@pytest.mark.parametrize("sigma_deg", [4.0, 15.0])
+def test_the_parked_heading_keeps_its_configured_sigma_until_the_course(sigma_deg):
+    """Until the first course the heading is the configured one with the configured sigma
+    (the simulation draws the configured heading's error with that sigma); parked, the
+    rest's small forces tell it little."""
+    sim = simulate_flight(load_flight("ground", [f"initial.heading_sigma_deg={sigma_deg}"]), 0)
+    res = run_filter(sim.samples, sim.fixes, sim.config)
+    est = res.estimates
+    sd = np.rad2deg(np.sqrt(est.cov_nav[:, HEADING, HEADING]))
+    parked = est.t_s < 10.0  # the car drives off at 10 s
+    assert sd[0] == pytest.approx(sigma_deg, rel=1e-6)
+    assert sd[parked] == pytest.approx(sigma_deg, rel=1e-2)
+    assert res.counts["heading resets to the GPS course"] == 0
+    assert sd[-1] < 2.0  # the course and the turns have told it since
