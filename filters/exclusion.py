@@ -90,6 +90,15 @@ class ExclusionMixin:
         noise = filter_noise(s_new, cfg, None if se is None else se[:, 0:6])
         if self.method == "oracle":
             noise = replace(noise, position_sigma_m=0.0)
+        unsolved = np.flatnonzero(~new)
+        if unsolved.size:
+            # a feature no remaining channel solves keeps its bias state, which nothing
+            # reads; its prior stays the whole solve's, so that a start again's covariance
+            # is positive definite (the reduced solve's zero row gave it none)
+            prior = noise.bias_prior_cov.copy()
+            block = np.ix_(unsolved, unsolved)
+            prior[block] = self.noise.bias_prior_cov[block]
+            noise = replace(noise, bias_prior_cov=prior)
         nq_rows = new[6:]
         nf.set_solve(
             noise,

@@ -147,6 +147,30 @@ def test_a_loss_soon_after_a_start_again_stops_the_run():
     assert len(info.value.partial.track_losses) == 1
 
 
+def test_a_start_again_with_a_channel_excluded_carries_on():
+    """A track lost after a dead channel was excluded starts again on the reduced solve:
+    the feature no remaining channel solves keeps a bias prior (its zero row had left the
+    start's covariance singular and the run stopped)."""
+    from filters.pipeline import run_filter
+
+    scn = load_flight(
+        "tactical",
+        ["run.rate_hz=200", 'faults.inject=[{channel=6, kind="dead", start_s=15.0}]'],
+    )
+    sim = simulate_flight(scn, 0)
+    res = run_filter(sim.samples, sim.fixes, sim.config, lose_track_at_s=(LOSS_S,))
+    assert [ev.channels for ev in res.faults] == [(6,)]
+    (loss,) = res.track_losses
+    est = res.estimates
+    assert est.t_s[-1] == pytest.approx(sim.truth.t_s[-1], abs=0.02)  # ran to the end
+    first_valid = est.t_s[(est.t_s >= loss.restarted_s - 1e-9) & est.valid][0]
+    assert first_valid - loss.lost_at_s <= 10.0
+    late = est.t_s >= LOSS_S + 20.0
+    errs = run_errors(est, sim.truth).stacked()[late]
+    sig = np.sqrt(np.einsum("eii->ei", est.cov_nav[late]))
+    assert np.all(np.abs(errs) <= 5.0 * sig)
+
+
 def test_a_lost_run_keeps_the_series_a_campaign_averages(lost_run):
     """Epochs, GPS innovations and rate NIS: one entry each as in the same run without the
     loss (NaN where there was none), so Monte Carlo runs with and without losses average."""
