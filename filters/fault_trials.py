@@ -93,26 +93,30 @@ def attitude_cost_sigmas(faulted, clean, truth, t_s: float) -> float:
     return float(np.max(np.abs(e_f - e_c) / sd))
 
 
+def _watched(scn, run: int, faults: tuple[ChannelFault, ...], end_s: float | None):
+    """Run ``run`` of ``scn`` with ``faults``: its config, samples, truth and fixes, up to
+    ``end_s`` from its first sample (None: the whole flight)."""
+    from ngnav.sim.simulate import simulate_flight
+
+    sim = simulate_flight(replace(scn, faults=faults), run)
+    samples, truth, fixes = sim.samples, sim.truth, sim.fixes
+    if end_s is not None:
+        end = truth.t_s[0] + end_s
+        keep = truth.t_s <= end
+        samples = replace(samples, t_s=samples.t_s[keep], accel_mps2=samples.accel_mps2[keep])
+        truth = type(truth)(*(getattr(truth, f.name)[keep] for f in fields(truth)))
+        fixes = fixes.select(fixes.t_s <= end)
+    return sim.config, samples, truth, fixes
+
+
 def fault_trial(scn, run: int, fault: ChannelFault | None, watch_s: float) -> TrialOutcome:
     """Simulate run ``run`` of ``scn`` with ``fault`` and watch the tests for ``watch_s``
     after it (the whole flight without a fault)."""
     from filters.evaluate import run_errors
     from filters.pipeline import run_filter
-    from ngnav.sim.simulate import simulate_flight
 
-    def watched(faults: tuple):
-        """The run's samples, truth and fixes with ``faults``, up to ``watch_s`` after it."""
-        sim = simulate_flight(replace(scn, faults=faults), run)
-        samples, truth, fixes = sim.samples, sim.truth, sim.fixes
-        if fault is not None:
-            end = truth.t_s[0] + fault.start_s + watch_s
-            keep = truth.t_s <= end
-            samples = replace(samples, t_s=samples.t_s[keep], accel_mps2=samples.accel_mps2[keep])
-            truth = type(truth)(*(getattr(truth, f.name)[keep] for f in fields(truth)))
-            fixes = fixes.select(fixes.t_s <= end)
-        return sim.config, samples, truth, fixes
-
-    config, samples, truth, fixes = watched(() if fault is None else (fault,))
+    end_s = None if fault is None else fault.start_s + watch_s
+    config, samples, truth, fixes = _watched(scn, run, () if fault is None else (fault,), end_s)
     failure = ""
     try:
         res = run_filter(samples, fixes, config, truth=truth)
@@ -143,7 +147,7 @@ def fault_trial(scn, run: int, fault: ChannelFault | None, watch_s: float) -> Tr
         err = run_errors(est, truth).att_ned_rad[j]
         sd = np.sqrt(np.diag(est.cov_nav[j][ATT, ATT]))
         sig = float(np.max(np.abs(err) / sd))
-        c_config, c_samples, c_truth, c_fixes = watched(())
+        c_config, c_samples, c_truth, c_fixes = _watched(scn, run, (), end_s)
         try:
             clean = run_filter(c_samples, c_fixes, c_config, truth=c_truth).estimates
         except CovarianceError:
@@ -265,4 +269,154 @@ def summarise_trials(trials: list[TrialOutcome], kinds: tuple[str, ...]) -> dict
         "alarms": sum(t.false_alarms for t in clean),
         "stopped": sum(1 for t in clean if t.failure),
     }
+    return out
+
+
+# ------------------------------------------------------------ two channels at once
+@dataclass(frozen=True)
+class PairOutcome:
+    """One two-channel trial (times in s from the faults' start; NaN when it did not happen).
+
+    Attributes
+    ----------
+    run : int
+    faults : tuple of ChannelFault
+        The two faults injected (one kind, one start).
+    verdict : str
+        What the parity's geometry says of the pair (:func:`filters.faults.pair_isolability`).
+    detected_s : float
+        Latency of the first event after the start, whichever channels it names.
+    isolated : tuple of int
+        Every channel an event isolated after the start (1-based, sorted).
+    failure : str
+        How the run stopped early ("" when it ran to its end).
+    """
+
+    run: int
+    faults: tuple[ChannelFault, ...]
+    verdict: str
+    detected_s: float
+    isolated: tuple[int, ...]
+    failure: str = ""
+
+
+def channel_pairs(n_channels: int) -> list[tuple[int, int]]:
+    """Every pair of channels, 1-based, in order: (1, 2), (1, 3), ..., (N - 1, N)."""
+    return [(i, j) for i in range(1, n_channels + 1) for j in range(i + 1, n_channels + 1)]
+
+
+def pair_trial(
+    scn, run: int, faults: tuple[ChannelFault, ...], verdict: str, watch_s: float
+) -> PairOutcome:
+    """Simulate run ``run`` of ``scn`` with two faults that start together, and watch the
+    tests for ``watch_s`` after them."""
+    from filters.pipeline import run_filter
+
+    config, samples, truth, fixes = _watched(scn, run, faults, faults[0].start_s + watch_s)
+    failure = ""
+    try:
+        res = run_filter(samples, fixes, config, truth=truth)
+    except CovarianceError as exc:
+        res = getattr(exc, "partial", None)
+        failure = str(exc).splitlines()[0]
+        if res is None:
+            return PairOutcome(run, faults, verdict, np.nan, (), failure)
+    t0 = float(samples.t_s[0])
+    t_start = t0 + faults[0].start_s
+    start = float(samples.t_s[np.searchsorted(samples.t_s, t_start - 1e-12)])
+    after = [ev for ev in res.faults if ev.detected_at_s >= t_start - 1e-9]
+    detected = min((ev.detected_at_s for ev in after), default=np.nan) - start
+    isolated = sorted({c for ev in after if np.isfinite(ev.isolated_at_s) for c in ev.channels})
+    return PairOutcome(run, faults, verdict, float(detected), tuple(isolated), failure)
+
+
+def _pair_task(scn, tasks: list, watch_s: float, index: int) -> PairOutcome:
+    _kind, run, faults, verdict = tasks[index]
+    return pair_trial(scn, run, faults, verdict, watch_s)
+
+
+def pair_campaign(
+    scn,
+    kinds: tuple[str, ...],
+    runs: int,
+    *,
+    drift_mps2_per_s: float = TRIAL_DRIFT_MPS2_PER_S,
+    watch_s: float = 10.0,
+    workers: int = 2,
+    scheduler: str | None = None,
+    progress: bool = False,
+) -> dict:
+    """Two channels failing together: ``runs`` trials per kind (run ``i`` takes pair
+    ``i mod N(N-1)/2`` of :func:`channel_pairs`, its start drawn as a single trial's), each
+    with what the parity's geometry says of its pair; the summary
+    :func:`summarise_pair_trials` gives."""
+    from functools import partial
+
+    from filters.faults import pair_isolability
+    from ngnav.campaign import run_campaign
+    from ngnav.frontend import ArraySolver
+    from ngnav.layout import layout_by_name
+
+    layout = layout_by_name(scn.array.layout, scn.array.lever_arm_m)
+    n = layout.n_sensors
+    if n < 2:
+        raise ValueError("two-channel trials need at least two channels")
+    # the nominal layout's parity signatures: the solve's rate rows
+    verdicts = pair_isolability(ArraySolver(layout).solve_matrix[6:])
+    pairs = channel_pairs(n)
+    duration = scn.plan().duration_s
+    start_from, start_to = min(15.0, duration / 4), duration - watch_s - 1.0
+    if start_to <= start_from:
+        raise ValueError(f"the flight ({duration:g} s) is too short to watch {watch_s:g} s")
+    tasks: list[tuple[str, int, tuple[ChannelFault, ...], str]] = []
+    for kind in kinds:
+        size = drift_mps2_per_s if kind == "drift" else DEFAULT_SIZES[kind]
+        for run in range(runs):
+            a, b = pairs[run % len(pairs)]
+            first = trial_fault(kind, run, n, start_from, start_to, size)
+            faults = (replace(first, channel=a), replace(first, channel=b))
+            tasks.append((kind, run, faults, verdicts[(a - 1, b - 1)]))
+    results: dict[int, PairOutcome] = {}
+    failures = run_campaign(
+        partial(_pair_task, scn, tasks, watch_s),
+        range(len(tasks)),
+        results.__setitem__,
+        workers=workers,
+        scheduler=scheduler,
+        progress=progress,
+        desc="pair trials",
+    )
+    if failures:
+        raise RuntimeError(f"{len(failures)} trials raised; first: {failures[0].error}")
+    out = summarise_pair_trials([results[i] for i in range(len(tasks))], kinds)
+    out.update(scenario=scn.name, runs=runs, watch_s=watch_s, drift_mps2_per_s=drift_mps2_per_s)
+    out["verdicts"] = {
+        v: [f"A{i + 1}+A{j + 1}" for (i, j), x in verdicts.items() if x == v]
+        for v in sorted(set(verdicts.values()))
+    }
+    return out
+
+
+def summarise_pair_trials(trials: list[PairOutcome], kinds: tuple[str, ...]) -> dict:
+    """Per kind and verdict: trials, detected, latency (s; median and worst), both channels
+    isolated and nothing else, a channel outside the pair isolated, filter stopped."""
+    out: dict = {"pairs": {}}
+    for kind in kinds:
+        per: dict = {}
+        for verdict in sorted({t.verdict for t in trials if t.faults[0].kind == kind}):
+            tr = [t for t in trials if t.faults[0].kind == kind and t.verdict == verdict]
+            det = [t for t in tr if np.isfinite(t.detected_s)]
+            per[verdict] = {
+                "trials": len(tr),
+                "detected": len(det),
+                "detection_s": _stats([t.detected_s for t in det]),
+                "both_isolated": sum(
+                    1 for t in tr if t.isolated == tuple(sorted(f.channel for f in t.faults))
+                ),
+                "wrong_isolated": sum(
+                    1 for t in tr if set(t.isolated) - {f.channel for f in t.faults}
+                ),
+                "stopped": sum(1 for t in tr if t.failure),
+            }
+        out["pairs"][kind] = per
     return out

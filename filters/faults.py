@@ -84,6 +84,48 @@ def signature_groups(signatures: np.ndarray) -> list[tuple[int, ...]]:
     return [tuple(g) for g in groups]
 
 
+#: A signature nearer than this to the plane of two others (the sine of its angle from it)
+#: lies in it: the same 2.6 deg as :data:`_PARALLEL_COS`.
+_COPLANAR_SIN = float(np.sqrt(1.0 - _PARALLEL_COS**2))
+
+
+def pair_isolability(signatures: np.ndarray) -> dict[tuple[int, int], str]:
+    """What the parity can tell of two channels (0-based, ``i < j``) that fail together.
+
+    Two offsets move the innovation in the plane of their signatures (columns of (nq, N));
+    the parity can name the pair only if no other group's signature lies in that plane.
+    Each pair's verdict: ``"isolable"``; ``"one group"`` (parallel signatures: one
+    direction, as for one channel of the group); ``"ambiguous"`` (a third group's
+    signature lies in their plane: that group with either one moves the innovation the
+    same way); ``"unseen"`` (a channel with no signature). Offsets in one direction that
+    grow alike are told apart by no test on the innovation alone.
+    """
+    s = np.asarray(signatures, dtype=float)
+    groups = signature_groups(s)
+    group_of = {c: g for g, grp in enumerate(groups) for c in grp}
+    unit = [s[:, grp[0]] / np.linalg.norm(s[:, grp[0]]) for grp in groups]
+    out: dict[tuple[int, int], str] = {}
+    for i in range(s.shape[1]):
+        for j in range(i + 1, s.shape[1]):
+            gi, gj = group_of.get(i), group_of.get(j)
+            if gi is None or gj is None:
+                out[(i, j)] = "unseen"
+            elif gi == gj:
+                out[(i, j)] = "one group"
+            else:
+                plane = np.column_stack([unit[gi], unit[gj]])
+                verdict = "isolable"
+                for g, u in enumerate(unit):
+                    if g in (gi, gj):
+                        continue
+                    coef, *_ = np.linalg.lstsq(plane, u, rcond=None)
+                    if np.linalg.norm(u - plane @ coef) <= _COPLANAR_SIN:
+                        verdict = "ambiguous"
+                        break
+                out[(i, j)] = verdict
+    return out
+
+
 class ChannelMonitor:
     """The three health tests over one array's channels, and the events they raise.
 

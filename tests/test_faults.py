@@ -11,6 +11,7 @@ from filters.faults import (
     NOISE_WINDOW,
     NOISY_RATIO,
     ChannelMonitor,
+    pair_isolability,
     signature_groups,
 )
 from ngnav.frontend import ArraySolver
@@ -158,6 +159,33 @@ def test_the_nine_cube_parity_groups_are_its_angular_acceleration_pairs():
     assert signature_groups(np.zeros((0, 6))) == []
 
 
+def test_the_parity_can_name_nine_of_the_nine_cubes_pairs():
+    """Two offsets move the innovation in their signatures' plane; on the nine-cube the six
+    groups' directions make four coplanar triples, so only the pairs whose plane holds no
+    third group can be told apart (checked here by the triple product, not the verdict's
+    projection)."""
+    s = ArraySolver(nine_accelerometer_cube(0.1)).solve_matrix[6:]
+    verdicts = pair_isolability(s)
+    assert len(verdicts) == 36
+    assert sorted(k for k, v in verdicts.items() if v == "one group") == [(1, 4), (2, 7), (5, 8)]
+    groups = signature_groups(s)
+    unit = [s[:, g[0]] / np.linalg.norm(s[:, g[0]]) for g in groups]
+    group_of = {c: i for i, g in enumerate(groups) for c in g}
+    for (i, j), verdict in verdicts.items():
+        gi, gj = group_of[i], group_of[j]
+        if gi == gj:
+            continue
+        dets = [abs(np.linalg.det(np.column_stack([unit[gi], unit[gj], unit[g]])))
+                for g in range(len(groups)) if g not in (gi, gj)]  # fmt: skip
+        assert (verdict == "isolable") == (min(dets) > 0.1), (i, j, verdict, min(dets))
+    assert sum(v == "isolable" for v in verdicts.values()) == 9
+    # a channel the parity does not see, and a layout with no rate rows
+    s0 = s.copy()
+    s0[:, 0] = 0.0
+    assert pair_isolability(s0)[(0, 3)] == "unseen"
+    assert pair_isolability(np.zeros((0, 6)))[(0, 1)] == "unseen"
+
+
 def test_a_parity_offset_is_found_on_its_group_and_named_when_alone():
     s = ArraySolver(nine_accelerometer_cube(0.1)).solve_matrix[6:]
     cov = np.eye(3) * 0.02**2
@@ -225,6 +253,27 @@ def test_the_faults_command_reports_latencies_as_json():
     assert out["fault_free"]["flights"] == 1 and out["fault_free"]["alarms"] == 0
     bad = run_cli("faults", "--kinds", "melted", check=False)
     assert bad.returncode == 2 and "melted" in bad.stderr
+
+
+def test_the_faults_command_runs_two_channel_trials():
+    """`ngnav faults --pairs`: each trial's pair with the parity's verdict on it; two dead
+    channels are each named by their flat lines, whatever the geometry."""
+    import json
+
+    from tests.helpers import run_cli
+
+    args = ["faults", "--scenario", "tactical", "--set", "run.rate_hz=200", "--pairs",
+            "--runs", "4", "--kinds", "dead", "--workers", "1", "--json"]  # fmt: skip
+    out = json.loads(run_cli(*args).stdout)
+    # runs 0-3 take A1+A2, A1+A3, A1+A4, A1+A5: ambiguous, ambiguous, isolable, ambiguous
+    dead = out["pairs"]["dead"]
+    assert dead["ambiguous"]["trials"] == 3 and dead["isolable"]["trials"] == 1
+    for r in dead.values():
+        assert r["detected"] == r["both_isolated"] == r["trials"]
+        assert r["wrong_isolated"] == 0
+    assert len(out["verdicts"]["isolable"]) == 9 and "A1+A4" in out["verdicts"]["isolable"]
+    bad = run_cli("faults", "--pairs", "--clean-runs", "2", check=False)
+    assert bad.returncode == 2 and "--pairs" in bad.stderr
 
 
 # ----------------------------------------------------------------- exclusion

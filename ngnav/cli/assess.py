@@ -234,6 +234,10 @@ def cmd_faults(args: argparse.Namespace) -> int:
         raise ValueError(f"--kinds: {bad[0]!r} is not one of {', '.join(FAULT_KINDS)}")
     if args.runs < 0 or args.clean_runs < 0:
         raise ValueError("--runs and --clean-runs must be >= 0")
+    if args.pairs:
+        if args.clean_runs:
+            raise ValueError("--pairs runs two-channel trials only: drop --clean-runs")
+        return _pair_trials(args, kinds)
     scn = flight_scenario(args)
     out = fault_campaign(
         scn,
@@ -284,6 +288,42 @@ def cmd_faults(args: argparse.Namespace) -> int:
             f"{ff['alarms']} alarms"
             + (f", filter stopped in {ff['stopped']}" if ff["stopped"] else "")
         )
+    return 0
+
+
+def _pair_trials(args: argparse.Namespace, kinds: tuple[str, ...]) -> int:
+    """``ngnav faults --pairs``: two channels failing together, by what the parity's
+    geometry says of each pair."""
+    from filters.fault_trials import pair_campaign
+
+    out = pair_campaign(
+        flight_scenario(args),
+        kinds,
+        args.runs,
+        drift_mps2_per_s=args.drift,
+        watch_s=args.watch,
+        workers=args.workers,
+        scheduler=args.scheduler,
+        progress=show_progress() and not args.json,
+    )
+    if args.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    print(
+        f"{out['scenario']}: {out['runs']} two-channel trials per kind (pair i in order), "
+        f"watched {out['watch_s']:g} s after the faults; drift {out['drift_mps2_per_s']:g} m/s^2/s"
+    )
+    for verdict, pairs in out["verdicts"].items():
+        print(f"  the parity's geometry: {verdict} {len(pairs)} pairs: {', '.join(pairs)}")
+    for kind, per in out["pairs"].items():
+        for verdict, r in per.items():
+            st = r["detection_s"]
+            lat = f"{1000 * st['median']:.0f} / {1000 * st['worst']:.0f} ms" if st["n"] else "-"
+            print(
+                f"  {kind:9s} {verdict:9s} detected {r['detected']}/{r['trials']} (median / "
+                f"worst {lat}), both isolated {r['both_isolated']}, a channel outside the pair "
+                f"isolated {r['wrong_isolated']}, filter stopped {r['stopped']}"
+            )
     return 0
 
 
@@ -383,6 +423,12 @@ def add_parsers(sub) -> None:
     )
     p.add_argument(
         "--watch", type=float, default=10.0, metavar="S", help="seconds watched after the fault"
+    )
+    p.add_argument(
+        "--pairs",
+        action="store_true",
+        help="two channels failing together (run i takes the i-th pair), by what the "
+        "parity's geometry says of each pair",
     )
     add_campaign_args(p)
     p.add_argument("--json", action="store_true", help="print the figures as JSON")
