@@ -178,6 +178,37 @@ def _task(scn, tasks: list, watch_s: float, index: int) -> TrialOutcome:
     return fault_trial(scn, run, fault, watch_s)
 
 
+def _start_window(scn, watch_s: float) -> tuple[float, float]:
+    """The span a trial's fault starts in, s from the run's first sample: from 15 s (a
+    quarter of a shorter flight) to ``watch_s`` + 1 s before the flight's end."""
+    duration = scn.plan().duration_s
+    start_from, start_to = min(15.0, duration / 4), duration - watch_s - 1.0
+    if start_to <= start_from:
+        raise ValueError(f"the flight ({duration:g} s) is too short to watch {watch_s:g} s")
+    return start_from, start_to
+
+
+def _run_trials(
+    task, n_tasks: int, workers: int, scheduler: str | None, progress: bool, desc: str
+) -> list:
+    """``task(i)`` for ``i`` in ``range(n_tasks)`` on the campaign's workers, in order."""
+    from ngnav.campaign import run_campaign
+
+    results: dict = {}
+    failures = run_campaign(
+        task,
+        range(n_tasks),
+        results.__setitem__,
+        workers=workers,
+        scheduler=scheduler,
+        progress=progress,
+        desc=desc,
+    )
+    if failures:
+        raise RuntimeError(f"{len(failures)} trials raised; first: {failures[0].error}")
+    return [results[i] for i in range(n_tasks)]
+
+
 def fault_campaign(
     scn,
     kinds: tuple[str, ...],
@@ -194,33 +225,20 @@ def fault_campaign(
     flights; the summary :func:`summarise_trials` gives."""
     from functools import partial
 
-    from ngnav.campaign import run_campaign
     from ngnav.layout import layout_by_name
 
     n = layout_by_name(scn.array.layout, scn.array.lever_arm_m).n_sensors
-    duration = scn.plan().duration_s
-    start_from, start_to = min(15.0, duration / 4), duration - watch_s - 1.0
-    if start_to <= start_from:
-        raise ValueError(f"the flight ({duration:g} s) is too short to watch {watch_s:g} s")
+    start_from, start_to = _start_window(scn, watch_s)
     tasks: list[tuple[str, int, ChannelFault | None]] = []
     for kind in kinds:
         size = drift_mps2_per_s if kind == "drift" else DEFAULT_SIZES[kind]
         for run in range(runs):
             tasks.append((kind, run, trial_fault(kind, run, n, start_from, start_to, size)))
     tasks += [("none", run, None) for run in range(clean_runs)]
-    results: dict[int, TrialOutcome] = {}
-    failures = run_campaign(
-        partial(_task, scn, tasks, watch_s),
-        range(len(tasks)),
-        results.__setitem__,
-        workers=workers,
-        scheduler=scheduler,
-        progress=progress,
-        desc="trials",
+    trials = _run_trials(
+        partial(_task, scn, tasks, watch_s), len(tasks), workers, scheduler, progress, "trials"
     )
-    if failures:
-        raise RuntimeError(f"{len(failures)} trials raised; first: {failures[0].error}")
-    out = summarise_trials([results[i] for i in range(len(tasks))], kinds)
+    out = summarise_trials(trials, kinds)
     out.update(scenario=scn.name, runs=runs, clean_runs=clean_runs, watch_s=watch_s)
     out["drift_mps2_per_s"] = drift_mps2_per_s
     return out
@@ -353,7 +371,6 @@ def pair_campaign(
     from functools import partial
 
     from filters.faults import pair_isolability
-    from ngnav.campaign import run_campaign
     from ngnav.frontend import ArraySolver
     from ngnav.layout import layout_by_name
 
@@ -364,10 +381,7 @@ def pair_campaign(
     # the nominal layout's parity signatures: the solve's rate rows
     verdicts = pair_isolability(ArraySolver(layout).solve_matrix[6:])
     pairs = channel_pairs(n)
-    duration = scn.plan().duration_s
-    start_from, start_to = min(15.0, duration / 4), duration - watch_s - 1.0
-    if start_to <= start_from:
-        raise ValueError(f"the flight ({duration:g} s) is too short to watch {watch_s:g} s")
+    start_from, start_to = _start_window(scn, watch_s)
     tasks: list[tuple[str, int, tuple[ChannelFault, ...], str]] = []
     for kind in kinds:
         size = drift_mps2_per_s if kind == "drift" else DEFAULT_SIZES[kind]
@@ -376,19 +390,11 @@ def pair_campaign(
             first = trial_fault(kind, run, n, start_from, start_to, size)
             faults = (replace(first, channel=a), replace(first, channel=b))
             tasks.append((kind, run, faults, verdicts[(a - 1, b - 1)]))
-    results: dict[int, PairOutcome] = {}
-    failures = run_campaign(
-        partial(_pair_task, scn, tasks, watch_s),
-        range(len(tasks)),
-        results.__setitem__,
-        workers=workers,
-        scheduler=scheduler,
-        progress=progress,
-        desc="pair trials",
-    )
-    if failures:
-        raise RuntimeError(f"{len(failures)} trials raised; first: {failures[0].error}")
-    out = summarise_pair_trials([results[i] for i in range(len(tasks))], kinds)
+    trials = _run_trials(
+        partial(_pair_task, scn, tasks, watch_s), len(tasks), workers, scheduler, progress,
+        "pair trials",
+    )  # fmt: skip
+    out = summarise_pair_trials(trials, kinds)
     out.update(scenario=scn.name, runs=runs, watch_s=watch_s, drift_mps2_per_s=drift_mps2_per_s)
     out["verdicts"] = {
         v: [f"A{i + 1}+A{j + 1}" for (i, j), x in verdicts.items() if x == v]

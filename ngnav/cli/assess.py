@@ -224,8 +224,15 @@ def cmd_consistency(args: argparse.Namespace) -> int:
     return 0
 
 
+def _latency_ms(st: dict) -> str:
+    """Median / worst of a trial statistic in s, as ms ("-" without one)."""
+    if not st["n"]:
+        return "-"
+    return f"{1000 * st['median']:.0f} / {1000 * st['worst']:.0f} ms"
+
+
 def cmd_faults(args: argparse.Namespace) -> int:
-    from filters.fault_trials import fault_campaign
+    from filters.fault_trials import fault_campaign, pair_campaign
     from ngnav.sim.faults import FAULT_KINDS
 
     kinds = tuple(args.kinds.split(",")) if args.kinds else FAULT_KINDS
@@ -234,40 +241,36 @@ def cmd_faults(args: argparse.Namespace) -> int:
         raise ValueError(f"--kinds: {bad[0]!r} is not one of {', '.join(FAULT_KINDS)}")
     if args.runs < 0 or args.clean_runs < 0:
         raise ValueError("--runs and --clean-runs must be >= 0")
-    if args.pairs:
-        if args.clean_runs:
-            raise ValueError("--pairs runs two-channel trials only: drop --clean-runs")
-        return _pair_trials(args, kinds)
+    if args.pairs and args.clean_runs:
+        raise ValueError("--pairs runs two-channel trials only: drop --clean-runs")
     scn = flight_scenario(args)
-    out = fault_campaign(
-        scn,
-        kinds,
-        args.runs,
-        args.clean_runs,
+    common = dict(
         drift_mps2_per_s=args.drift,
         watch_s=args.watch,
         workers=args.workers,
         scheduler=args.scheduler,
         progress=show_progress() and not args.json,
     )
+    if args.pairs:
+        out = pair_campaign(scn, kinds, args.runs, **common)
+    else:
+        out = fault_campaign(scn, kinds, args.runs, args.clean_runs, **common)
     if args.json:
         print(json.dumps(out, indent=2))
+        return 0
+    if args.pairs:
+        _print_pair_trials(out)
         return 0
     print(
         f"{out['scenario']}: {out['runs']} trials per kind (channel i mod N + 1), watched "
         f"{out['watch_s']:g} s after the fault; drift {out['drift_mps2_per_s']:g} m/s^2/s"
     )
-
-    def ms(st: dict) -> str:
-        if not st["n"]:
-            return "-"
-        return f"{1000 * st['median']:.0f} / {1000 * st['worst']:.0f} ms"
-
     for kind, r in out["kinds"].items():
         line = (
-            f"  {kind:9s} detected {r['detected']}/{r['trials']} (median / worst {ms(r['detection_s'])}), "
-            f"isolated to the right channel in {r['isolated_right']} ({ms(r['isolation_s'])}), "
-            f"to its pair only {r['not_isolable']}; alarms on other channels {r['other_alarms']}"
+            f"  {kind:9s} detected {r['detected']}/{r['trials']} (median / worst "
+            f"{_latency_ms(r['detection_s'])}), isolated to the right channel in "
+            f"{r['isolated_right']} ({_latency_ms(r['isolation_s'])}), to its pair only "
+            f"{r['not_isolable']}; alarms on other channels {r['other_alarms']}"
         )
         if kind == "drift":
             a = r["attitude_sigmas_at_detection"]
@@ -291,24 +294,9 @@ def cmd_faults(args: argparse.Namespace) -> int:
     return 0
 
 
-def _pair_trials(args: argparse.Namespace, kinds: tuple[str, ...]) -> int:
+def _print_pair_trials(out: dict) -> None:
     """``ngnav faults --pairs``: two channels failing together, by what the parity's
     geometry says of each pair."""
-    from filters.fault_trials import pair_campaign
-
-    out = pair_campaign(
-        flight_scenario(args),
-        kinds,
-        args.runs,
-        drift_mps2_per_s=args.drift,
-        watch_s=args.watch,
-        workers=args.workers,
-        scheduler=args.scheduler,
-        progress=show_progress() and not args.json,
-    )
-    if args.json:
-        print(json.dumps(out, indent=2))
-        return 0
     print(
         f"{out['scenario']}: {out['runs']} two-channel trials per kind (pair i in order), "
         f"watched {out['watch_s']:g} s after the faults; drift {out['drift_mps2_per_s']:g} m/s^2/s"
@@ -317,14 +305,12 @@ def _pair_trials(args: argparse.Namespace, kinds: tuple[str, ...]) -> int:
         print(f"  the parity's geometry: {verdict} {len(pairs)} pairs: {', '.join(pairs)}")
     for kind, per in out["pairs"].items():
         for verdict, r in per.items():
-            st = r["detection_s"]
-            lat = f"{1000 * st['median']:.0f} / {1000 * st['worst']:.0f} ms" if st["n"] else "-"
             print(
                 f"  {kind:9s} {verdict:9s} detected {r['detected']}/{r['trials']} (median / "
-                f"worst {lat}), both isolated {r['both_isolated']}, a channel outside the pair "
-                f"isolated {r['wrong_isolated']}, filter stopped {r['stopped']}"
+                f"worst {_latency_ms(r['detection_s'])}), both isolated {r['both_isolated']}, "
+                f"a channel outside the pair isolated {r['wrong_isolated']}, filter stopped "
+                f"{r['stopped']}"
             )
-    return 0
 
 
 def add_campaign_args(p: argparse.ArgumentParser) -> None:
