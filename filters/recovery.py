@@ -11,7 +11,9 @@ again there:
 - the tilt from the array's specific force over the last block against the GPS
   acceleration between the two fixes (``C f_b = a_n - g_n``, a TRIAD with the heading);
 - the heading from the GPS course for a fixed-wing (no sideslip: the course is the
-  heading), otherwise the configured heading with :data:`RESTART_HEADING_SIGMA_DEG`;
+  heading) and for a vehicle whose heading is its course (``initial.heading_source =
+  "gps"``), otherwise the configured heading with :data:`RESTART_HEADING_SIGMA_DEG` (for the
+  latter until the next course);
 - the rate zero with :data:`RESTART_RATE_SIGMA_DPS`, the biases and the other states
   at their priors: after a divergence their estimates are not to be trusted.
 
@@ -167,12 +169,18 @@ class RecoveryMixin:
         if not np.any(seed_ok):
             return  # no valid sample to tilt by: the next fix will do
         f_b = seed[seed_ok, 3:6].mean(axis=0)
-        course = _gps_course(vel, vacc) if cfg.vehicle.fixed_wing else None
+        # a fixed-wing flies along its course (no sideslip), and so does a vehicle whose
+        # heading is its course (``initial.heading_source = "gps"``)
+        on_course = cfg.vehicle.fixed_wing or self._heading_is_course
+        course = _gps_course(vel, vacc) if on_course else None
         if course is not None:
-            heading, heading_sigma = course[0], max(course[1], np.deg2rad(2.0))
+            heading, heading_sigma = course
+            if cfg.vehicle.fixed_wing:
+                heading_sigma = max(heading_sigma, np.deg2rad(2.0))
         else:
             heading = float(np.deg2rad(cfg.initial.yaw_deg))
             heading_sigma = float(np.deg2rad(RESTART_HEADING_SIGMA_DEG))
+            self._heading_pending = self._heading_is_course  # the next course sets it
         c = triad(f_b, f_n, heading)
         q = quat_from_euler(
             np.arctan2(c[2, 1], c[2, 2]),

@@ -81,3 +81,24 @@ def test_the_parked_heading_keeps_its_configured_sigma_until_the_course(sigma_de
     assert sd[parked] == pytest.approx(sigma_deg, rel=1e-2)
     assert res.counts["heading resets to the GPS course"] == 0
     assert sd[-1] < 2.0  # the course and the turns have told it since
+
+
+def test_a_start_again_takes_the_heading_from_the_course():
+    """A vehicle whose heading is its course starts again on the course (its own noise at
+    three sigmas), not on the configured heading with 60 deg: `ground` run 0, its track lost
+    at 60 s on the straight after the first turn (the truth heads 180 deg, the
+    configuration says 90)."""
+    scn = load_flight("ground", ["faults.lose_track_at_s=[60.0]"])
+    sim = simulate_flight(scn, 0)
+    res = run_filter(sim.samples, sim.fixes, sim.config, lose_track_at_s=scn.lose_track_at_s)
+    (loss,) = res.track_losses
+    est = res.estimates
+    e = int(np.searchsorted(est.t_s, loss.restarted_s - 1e-9))
+    j = int(np.searchsorted(sim.truth.t_s, est.t_s[e]))
+    dq = quat_multiply(sim.truth.q_nb[j], quat_conjugate(est.q_nb[e]))
+    err = float(quat_to_rotvec(dq)[2])
+    sigma = float(np.sqrt(est.cov_nav[e, HEADING, HEADING]))
+    assert sigma < np.deg2rad(3.0)
+    assert abs(err) < 3.0 * sigma
+    first_valid = est.t_s[(est.t_s >= loss.restarted_s - 1e-9) & est.valid][0]
+    assert first_valid - loss.lost_at_s <= 10.0
