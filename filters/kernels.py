@@ -514,21 +514,42 @@ def ned_velocity_curvature(v: np.ndarray, p_full: np.ndarray):
 
 
 @njit(cache=True)
-def epoch_covariance(p: np.ndarray, vel: np.ndarray, body_allowed: bool, max_frame_mps: float):
-    """An epoch record's covariance (n, n) and NED velocity (3,), new arrays, and the
-    covariance's navigation block (12, 12) (``Pipeline._record``): with the body-frame
-    velocity error (``body_allowed`` and :func:`body_frame_curvature_ok`) the NED
-    velocity's second-order part's mean and covariance added (:func:`ned_velocity_curvature`:
-    the NED velocity a user reads)."""
-    out = p.copy()
+def epoch_record(
+    p: np.ndarray,
+    vel: np.ndarray,
+    body_allowed: bool,
+    max_frame_mps: float,
+    pos: np.ndarray,
+    q: np.ndarray,
+    w: np.ndarray,
+    bias: np.ndarray,
+    nav: np.ndarray,
+    cov: np.ndarray,
+    e: int,
+    p_out: np.ndarray,
+) -> None:
+    """An epoch's record (``Pipeline._record``, :class:`filters.epochs.EpochStore`): its
+    covariance (n, n) written into ``p_out``, and into row ``e`` of ``nav`` (E, 13 + nb)
+    ``pos`` (3,), the NED velocity (3,), ``q`` (4,), ``w`` (3,), ``bias`` (nb,) and of
+    ``cov`` (E, 12, 12) the covariance's navigation block. With the body-frame velocity
+    error (``body_allowed`` and :func:`body_frame_curvature_ok`) the NED velocity's
+    second-order part's mean and covariance are added to ``vel`` and P
+    (:func:`ned_velocity_curvature`: the NED velocity a user reads)."""
+    p_out[:] = p
     v = vel.copy()
     if body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps):
         mc, cc = ned_velocity_curvature(vel, p)
         for i in range(3):
             v[i] = vel[i] + mc[i]
             for j in range(3):
-                out[_VEL + i, _VEL + j] += cc[i, j]
-    return out, v, out[:N_NAV, :N_NAV].copy()
+                p_out[_VEL + i, _VEL + j] += cc[i, j]
+    row = nav[e]
+    row[0:3] = pos
+    row[3:6] = v
+    row[6:10] = q
+    row[10:13] = w
+    row[13:] = bias
+    cov[e] = p_out[:N_NAV, :N_NAV]
 
 
 # -------- the process model: F, Q and the force curvature
