@@ -2,9 +2,11 @@
 
 Each epoch's position, NED velocity, attitude, rate and biases and its navigation
 covariance (12 x 12) are written by :func:`filters.kernels.epoch_record` into a row of
-columns that grow by doubling; the rest of the epoch (its time, bound, angle of attack,
-faulty channels, validity) goes into a list. Stacking per-epoch arrays at the run's end
-instead cost about 5 us an epoch (issue 56: the arrays lie scattered over the heap).
+columns kept in chunks of :data:`CHUNK_EPOCHS` rows (a full chunk stays as it is and a new
+one starts: no copy while the run grows); the rest of the epoch (its time, bound, angle of
+attack, faulty channels, validity) goes into a list. Stacking per-epoch arrays at the run's
+end instead cost about 5 us an epoch (issue 56: the arrays lie scattered over the heap), and
+so did columns that doubled when full (their copies).
 """
 
 from __future__ import annotations
@@ -14,16 +16,17 @@ import numpy as np
 from filters.state import N_NAV
 from ngnav.records import Estimates
 
-#: The columns' first length (epochs); they double when full.
-FIRST_EPOCHS = 1024
+#: Rows (epochs) in a chunk of the columns.
+CHUNK_EPOCHS = 4096
 #: ``nav``'s columns before the biases: position, NED velocity, quaternion, rate.
 _NAV = 13
 
 
 class EpochStore:
-    """The epochs so far: ``nav`` (E, 13 + nb) and ``cov`` (E, 12, 12) columns (their first
-    :attr:`n` rows), ``rest`` one tuple ``(t_s, bound, aoa, aoa_sigma, faulty, valid)`` each,
-    and ``p`` (n, n) the latest epoch's whole covariance.
+    """The epochs so far: the current chunk's ``nav`` (C, 13 + nb) and ``cov`` (C, 12, 12)
+    columns (their first :attr:`i` rows written) after the full chunks, ``rest`` one tuple
+    ``(t_s, bound, aoa, aoa_sigma, faulty, valid)`` an epoch, and ``p`` (n, n) the latest
+    epoch's whole covariance.
 
     Parameters
     ----------
@@ -34,24 +37,31 @@ class EpochStore:
     """
 
     def __init__(self, n_bias: int, n: int) -> None:
-        self.n = 0
-        self.nav = np.empty((FIRST_EPOCHS, _NAV + n_bias))
-        self.cov = np.empty((FIRST_EPOCHS, N_NAV, N_NAV))
+        self._width = _NAV + n_bias
+        self._full: list[tuple[np.ndarray, np.ndarray]] = []
+        self._new_chunk()
+        self.i = 0
         self.rest: list[tuple] = []
         self.p = np.empty((n, n))
 
+    def _new_chunk(self) -> None:
+        self.nav = np.empty((CHUNK_EPOCHS, self._width))
+        self.cov = np.empty((CHUNK_EPOCHS, N_NAV, N_NAV))
+
     def __len__(self) -> int:
-        return self.n
+        return len(self._full) * CHUNK_EPOCHS + self.i
 
     def next_row(self) -> int:
-        """Take the next row of the columns (grown when full); returns its index, for the
-        kernel to write. The caller appends the epoch's :attr:`rest`."""
-        e = self.n
-        if e == self.nav.shape[0]:
-            self.nav = np.concatenate([self.nav, np.empty_like(self.nav)])
-            self.cov = np.concatenate([self.cov, np.empty_like(self.cov)])
-        self.n = e + 1
-        return e
+        """Take the next row of the current chunk (a new chunk when it is full); returns its
+        index in :attr:`nav` and :attr:`cov`, for the kernel to write. The caller appends
+        the epoch's :attr:`rest`."""
+        i = self.i
+        if i == CHUNK_EPOCHS:
+            self._full.append((self.nav, self.cov))
+            self._new_chunk()
+            i = 0
+        self.i = i + 1
+        return i
 
     def add_lost(self, t_s: float) -> None:
         """An empty epoch at ``t_s``: a lost track's, NaN and not valid (the fields the
@@ -59,25 +69,23 @@ class EpochStore:
         _, bound, aoa, aoa_sigma, _, _ = self.rest[-1]
         nan = (None if bound is None else np.full((N_NAV, N_NAV), np.nan),)
         nan += tuple(None if v is None else np.nan for v in (aoa, aoa_sigma))
-        e = self.next_row()
+        i = self.next_row()
         self.rest.append((t_s, *nan, 0, False))
-        self.nav[e] = np.nan
-        self.cov[e] = np.nan
+        self.nav[i] = np.nan
+        self.cov[i] = np.nan
 
     def clear(self) -> None:
         """Forget the epochs (a run that keeps only the latest)."""
-        self.n = 0
+        self._full.clear()
+        self.i = 0
         self.rest.clear()
-
-    def velocity(self, e: int) -> np.ndarray:
-        """Epoch ``e``'s NED velocity (3,), a copy."""
-        return self.nav[e, 3:6].copy()
 
     def estimates(self) -> Estimates:
         """The epochs as :class:`Estimates`."""
-        if not self.n:
+        if not self.rest:
             raise ValueError("no estimates to stack")
-        nav = self.nav[: self.n]
+        nav = np.concatenate([c[0] for c in self._full] + [self.nav[: self.i]])
+        cov = np.concatenate([c[1] for c in self._full] + [self.cov[: self.i]])
         t, *optional = zip(*self.rest, strict=True)  # bound, aoa, its sigma, faulty, valid
         return Estimates(
             np.array(t),
@@ -86,6 +94,6 @@ class EpochStore:
             nav[:, 6:10].copy(),
             nav[:, 10:13].copy(),
             nav[:, _NAV:].copy(),
-            self.cov[: self.n].copy(),
+            cov,
             *[None if c[0] is None else np.array(c) for c in optional],
         )

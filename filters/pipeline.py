@@ -327,7 +327,7 @@ class Pipeline(
         # filter replaces its state arrays (never writes into them), so they need no copy
         self._latest = None
         self._latest_args = (
-            e,
+            (store.nav, e),
             (nf.t_s, nf.pos, nf.q, nf.w, nf.bias, bound, *aoa),
             (
                 self.last_gps,
@@ -353,17 +353,16 @@ class Pipeline(
         """The latest epoch's record (None before the first); built when first asked for
         (a run without an ``on_epoch`` reader builds only the last one)."""
         if self._latest is None and self._latest_args is not None:
-            e, (t_s, pos, q, w, bias, *rest), extra = self._latest_args
+            (nav, e), (t_s, pos, q, w, bias, *rest), extra = self._latest_args
             gps, t_fix, resets, y, nis, gate, fb, fbs, held, rej, faulty, lay, geo, aoa, ok = extra
-            store = self._epochs
             self._latest = NavEstimate(
                 t_s,
                 pos,
-                store.velocity(e),
+                nav[e, 3:6].copy(),
                 q,
                 w,
                 bias,
-                store.p.copy(),
+                self._epochs.p.copy(),
                 *rest,  # the bound, the angle of attack and its sigma
                 last_gps=gps,
                 t_last_position_fix_s=t_fix,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from filters import kernels
-from filters.epochs import FIRST_EPOCHS, EpochStore
+from filters.epochs import CHUNK_EPOCHS, EpochStore
 from filters.state import N_NAV
 from ngnav.records import Estimates
 
@@ -38,11 +38,11 @@ def test_store_stacks_the_epochs_as_the_rows_do():
     rng = np.random.default_rng(0)
     n, nb = 20, 9
     store = EpochStore(nb, n)
-    rows = [_record(store, rng, 0.01 * i, n, nb) for i in range(FIRST_EPOCHS + 5)]
+    rows = [_record(store, rng, 0.01 * i, n, nb) for i in range(CHUNK_EPOCHS + 5)]
     store.add_lost(99.0)
     nan_like = [np.full(np.shape(v), np.nan) for v in rows[-1][1:7]]  # position to covariance
     rows.append((99.0, *nan_like, None, np.nan, np.nan, 0, False))  # no bound; not valid
-    assert len(store) == FIRST_EPOCHS + 6
+    assert len(store) == CHUNK_EPOCHS + 6
     _assert_same(store.estimates(), Estimates.from_rows(rows))
     store.clear()
     rows = [_record(store, rng, 1.0, n, nb)]
