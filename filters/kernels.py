@@ -345,10 +345,11 @@ def inject_error(
     is body-style (:func:`inject`) when ``body_allowed`` (the velocity error may be in the
     body frame), the attitude's curvature of the velocity is at most ``max_frame_mps``
     (:func:`body_frame_curvature_ok`) and the correction's, ``|v| |dtheta|^2 / 2``, at most
-    ``max_inject_mps``. P becomes ``G P G^T`` (:func:`reset_rows`). Returns the new ``q``,
-    ``pos``, ``vel``, ``w``, ``bias``, ``dr``, ``dg`` (new arrays), the AOA estimates,
-    the new P and whether body-style; writes the Jacobian's rows ``ga``, ``gvv``,
-    ``gvt`` (3, 3) into ``g_rows`` (3, 3, 3) (the last two only body-style).
+    ``max_inject_mps``. P becomes ``G P G^T`` in place (:func:`reset_rows_in_place`: the
+    caller's P is filterpy's new posterior, which nothing else holds). Returns the new
+    ``q``, ``pos``, ``vel``, ``w``, ``bias``, ``dr``, ``dg`` (new arrays), the AOA estimates
+    and whether body-style; writes the Jacobian's rows ``ga``, ``gvv``, ``gvt`` (3, 3) into
+    ``g_rows`` (3, 3, 3) (the last two only body-style).
     """
     bias0, dr0, cal0, aoa0, n_aoa = offsets
     dth = dx[_ATT : _ATT + 3].copy()
@@ -362,7 +363,7 @@ def inject_error(
     if body:
         g_rows[1] = gvv
         g_rows[2] = gvt
-    p_new = reset_rows(p, ga, gvv, gvt, _ATT, _VEL)
+    reset_rows_in_place(p, ga, gvv, gvt, _ATT, _VEL)
     pos_new = pos + dx[_POS : _POS + 3]
     w_new = w + dx[_RATE : _RATE + 3]
     bias_new = bias + dx[bias0 : bias0 + bias.shape[0]]
@@ -372,7 +373,7 @@ def inject_error(
         aoa_b += dx[aoa0]
         if n_aoa == 2:
             aoa_k += dx[aoa0 + 1]
-    return q_new, pos_new, v_new, w_new, bias_new, dr_new, dg_new, aoa_b, aoa_k, p_new, body
+    return q_new, pos_new, v_new, w_new, bias_new, dr_new, dg_new, aoa_b, aoa_k, body
 
 
 @njit(cache=True)
@@ -393,15 +394,20 @@ def body_frame_curvature_ok(p: np.ndarray, v: np.ndarray, max_mps: float) -> boo
 @njit(cache=True)
 def symmetrised(p: np.ndarray) -> np.ndarray:
     """``(P + P^T) / 2`` (n, n), a new array."""
+    out = p.copy()
+    symmetrise(out)
+    return out
+
+
+@njit(cache=True)
+def symmetrise(p: np.ndarray) -> None:
+    """``P`` (n, n) made ``(P + P^T) / 2`` in place (each pair read before it is written)."""
     n = p.shape[0]
-    out = np.empty((n, n))
     for i in range(n):
-        out[i, i] = p[i, i]
         for j in range(i + 1, n):
             s = 0.5 * (p[i, j] + p[j, i])
-            out[i, j] = s
-            out[j, i] = s
-    return out
+            p[i, j] = s
+            p[j, i] = s
 
 
 @njit(cache=True)
@@ -432,6 +438,16 @@ def reset_rows(
     (3, 3) and, unless ``gvv`` is (0, 0), its velocity rows ``[gvv, gvt]`` on the
     velocity and attitude columns (``algebra.apply_reset_jacobian``)."""
     out = p.copy()
+    reset_rows_in_place(out, ga, gvv, gvt, att0, vel0)
+    return out
+
+
+@njit(cache=True)
+def reset_rows_in_place(
+    p: np.ndarray, ga: np.ndarray, gvv: np.ndarray, gvt: np.ndarray, att0: int, vel0: int
+) -> None:
+    """:func:`reset_rows` written into ``p`` (each column's three or six entries are read
+    before they are written, so the result is the same to the bit)."""
     n = p.shape[0]
     body = gvv.shape[0] > 0
     # G's rows, then its columns, on three rows/columns each: loops (a BLAS call costs more
@@ -441,27 +457,22 @@ def reset_rows(
         if body:
             v0, v1, v2 = p[vel0, j], p[vel0 + 1, j], p[vel0 + 2, j]
             for i in range(3):
-                out[vel0 + i, j] = (gvv[i, 0] * v0 + gvv[i, 1] * v1 + gvv[i, 2] * v2) + (
+                p[vel0 + i, j] = (gvv[i, 0] * v0 + gvv[i, 1] * v1 + gvv[i, 2] * v2) + (
                     gvt[i, 0] * t0 + gvt[i, 1] * t1 + gvt[i, 2] * t2
                 )
         for i in range(3):
-            out[att0 + i, j] = ga[i, 0] * t0 + ga[i, 1] * t1 + ga[i, 2] * t2
+            p[att0 + i, j] = ga[i, 0] * t0 + ga[i, 1] * t1 + ga[i, 2] * t2
     for j in range(n):
-        t0, t1, t2 = out[j, att0], out[j, att0 + 1], out[j, att0 + 2]
+        t0, t1, t2 = p[j, att0], p[j, att0 + 1], p[j, att0 + 2]
         if body:
-            v0, v1, v2 = out[j, vel0], out[j, vel0 + 1], out[j, vel0 + 2]
+            v0, v1, v2 = p[j, vel0], p[j, vel0 + 1], p[j, vel0 + 2]
             for i in range(3):
-                out[j, vel0 + i] = (v0 * gvv[i, 0] + v1 * gvv[i, 1] + v2 * gvv[i, 2]) + (
+                p[j, vel0 + i] = (v0 * gvv[i, 0] + v1 * gvv[i, 1] + v2 * gvv[i, 2]) + (
                     t0 * gvt[i, 0] + t1 * gvt[i, 1] + t2 * gvt[i, 2]
                 )
         for i in range(3):
-            out[j, att0 + i] = t0 * ga[i, 0] + t1 * ga[i, 1] + t2 * ga[i, 2]
-    for i in range(n):
-        for j in range(i + 1, n):
-            s = 0.5 * (out[i, j] + out[j, i])
-            out[i, j] = s
-            out[j, i] = s
-    return out
+            p[j, att0 + i] = t0 * ga[i, 0] + t1 * ga[i, 1] + t2 * ga[i, 2]
+    symmetrise(p)
 
 
 @njit(cache=True)
@@ -503,21 +514,42 @@ def ned_velocity_curvature(v: np.ndarray, p_full: np.ndarray):
 
 
 @njit(cache=True)
-def epoch_covariance(p: np.ndarray, vel: np.ndarray, body_allowed: bool, max_frame_mps: float):
-    """An epoch record's covariance (n, n) and NED velocity (3,), new arrays, and the
-    covariance's navigation block (12, 12) (``Pipeline._record``): with the body-frame
-    velocity error (``body_allowed`` and :func:`body_frame_curvature_ok`) the NED
-    velocity's second-order part's mean and covariance added (:func:`ned_velocity_curvature`:
-    the NED velocity a user reads)."""
-    out = p.copy()
+def epoch_record(
+    p: np.ndarray,
+    vel: np.ndarray,
+    body_allowed: bool,
+    max_frame_mps: float,
+    pos: np.ndarray,
+    q: np.ndarray,
+    w: np.ndarray,
+    bias: np.ndarray,
+    nav: np.ndarray,
+    cov: np.ndarray,
+    e: int,
+    p_out: np.ndarray,
+) -> None:
+    """An epoch's record (``Pipeline._record``, :class:`filters.epochs.EpochStore`): its
+    covariance (n, n) written into ``p_out``, and into row ``e`` of ``nav`` (E, 13 + nb)
+    ``pos`` (3,), the NED velocity (3,), ``q`` (4,), ``w`` (3,), ``bias`` (nb,) and of
+    ``cov`` (E, 12, 12) the covariance's navigation block. With the body-frame velocity
+    error (``body_allowed`` and :func:`body_frame_curvature_ok`) the NED velocity's
+    second-order part's mean and covariance are added to ``vel`` and P
+    (:func:`ned_velocity_curvature`: the NED velocity a user reads)."""
+    p_out[:] = p
     v = vel.copy()
     if body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps):
         mc, cc = ned_velocity_curvature(vel, p)
         for i in range(3):
             v[i] = vel[i] + mc[i]
             for j in range(3):
-                out[_VEL + i, _VEL + j] += cc[i, j]
-    return out, v, out[:N_NAV, :N_NAV].copy()
+                p_out[_VEL + i, _VEL + j] += cc[i, j]
+    row = nav[e]
+    row[0:3] = pos
+    row[3:6] = v
+    row[6:10] = q
+    row[10:13] = w
+    row[13:] = bias
+    cov[e] = p_out[:N_NAV, :N_NAV]
 
 
 # -------- the process model: F, Q and the force curvature
@@ -830,11 +862,12 @@ def predicted_covariance(
     pos: np.ndarray,
     f_n: np.ndarray,
     t_s: float,
-) -> np.ndarray:
-    """P (n, n) after filterpy's predict over a block of ``t_s`` s: :func:`curvature_noise_step`
-    (its arguments), then symmetrised (a new array)."""
+) -> None:
+    """P (n, n) after filterpy's predict over a block of ``t_s`` s, in place (filterpy's new
+    array, which nothing else holds): :func:`curvature_noise_step` (its arguments), then
+    symmetrised."""
     curvature_noise_step(p, body_allowed, vel, max_frame_mps, acc, pos, f_n, t_s)
-    return symmetrised(p)
+    symmetrise(p)
 
 
 @njit(cache=True)

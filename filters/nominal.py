@@ -198,7 +198,6 @@ class NominalMixin:
             self.dg,
             self.aoa_b,
             self.aoa_k,
-            self.P,
             body,
         ) = kernels.inject_error(
             self.x,

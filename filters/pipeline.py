@@ -27,6 +27,7 @@ from filters import kernels
 from filters.algebra import BODY_FRAME_MAX_CURVATURE_MPS
 from filters.alignment import AlignmentMixin
 from filters.ekf import NavFilter
+from filters.epochs import EpochStore
 from filters.exclusion import ExclusionMixin, SuspectsMixin
 from filters.faults import ChannelMonitor
 from filters.noise import filter_noise
@@ -266,9 +267,9 @@ class Pipeline(
         self._latest_args: tuple | None = None
         self._blocks_for = None
         self._blocks: tuple = ()
-        #: The run's history: each epoch's fields for :class:`Estimates` (the 12 x 12
-        #: navigation covariance only; the full P goes to ``on_epoch`` and ``latest``).
-        self._rows: list[tuple] = []
+        #: The run's history for :class:`Estimates` (the 12 x 12 navigation covariance
+        #: only; the full P goes to ``on_epoch`` and ``latest``), made at the first epoch.
+        self._epochs: EpochStore | None = None
         self._inn: list[tuple] = []
         self._rate_nis: list[float] = []
         self._rate_nis_t: list[float] = []
@@ -291,26 +292,43 @@ class Pipeline(
         nf = self.nf
         pb = self._p_bound[:12, :12] if self._p_bound is not None else None
         self.n_epochs += 1
-        if not self.keep_estimates:
-            self._rows.clear()
-        # with the body-frame velocity error, the NED velocity a user reads: its
-        # second-order part's mean and covariance
-        p, vel, cov = kernels.epoch_covariance(
-            nf.P, nf.vel, nf._body_frame_allowed(), BODY_FRAME_MAX_CURVATURE_MPS
-        )
+        store = self._epochs
+        if store is None:
+            store = self._epochs = EpochStore(nf.bias.shape[0], nf.layout.n)
+        elif not self.keep_estimates:
+            store.clear()
         lay = nf.layout
         aoa = (nf.aoa, nf.aoa_sigma) if lay.n_aoa else (None, None)
+        bound = None if pb is None else pb.copy()
+        e = store.next_row()
+        # with the body-frame velocity error, the NED velocity a user reads: its
+        # second-order part's mean and covariance
+        p = store.p
+        kernels.epoch_record(
+            nf.P,
+            nf.vel,
+            nf._body_frame_allowed(),
+            BODY_FRAME_MAX_CURVATURE_MPS,
+            nf.pos,
+            nf.q,
+            nf.w,
+            nf.bias,
+            store.nav,
+            store.cov,
+            e,
+            p,
+        )
         c = nf.counters
         if self._converging and self._converged(p):
             self._converging = False
-        bound = None if pb is None else pb.copy()
         valid = not self._converging
-        extra = (self.block_faulty, valid)
+        store.rest.append((nf.t_s, bound, *aoa, self.block_faulty, valid))
         # what the epoch's NavEstimate is built from when it is read (:attr:`latest`); the
         # filter replaces its state arrays (never writes into them), so they need no copy
         self._latest = None
         self._latest_args = (
-            (nf.t_s, nf.pos, vel, nf.q, nf.w, nf.bias, p, bound, *aoa),
+            (store.nav, e),
+            (nf.t_s, nf.pos, nf.q, nf.w, nf.bias, bound, *aoa),
             (
                 self.last_gps,
                 nf.t_last_position_fix,
@@ -329,17 +347,23 @@ class Pipeline(
                 valid,
             ),
         )
-        self._rows.append((nf.t_s, nf.pos, vel, nf.q, nf.w, nf.bias, cov, bound, *aoa, *extra))
 
     @property
     def latest(self) -> NavEstimate | None:
         """The latest epoch's record (None before the first); built when first asked for
         (a run without an ``on_epoch`` reader builds only the last one)."""
         if self._latest is None and self._latest_args is not None:
-            args, extra = self._latest_args
+            (nav, e), (t_s, pos, q, w, bias, *rest), extra = self._latest_args
             gps, t_fix, resets, y, nis, gate, fb, fbs, held, rej, faulty, lay, geo, aoa, ok = extra
             self._latest = NavEstimate(
-                *args,
+                t_s,
+                pos,
+                nav[e, 3:6].copy(),
+                q,
+                w,
+                bias,
+                self._epochs.p.copy(),
+                *rest,  # the bound, the angle of attack and its sigma
                 last_gps=gps,
                 t_last_position_fix_s=t_fix,
                 resets=resets,
@@ -372,7 +396,9 @@ class Pipeline(
         if not self.started:
             raise ValueError("the filter has not started: no estimates")
         nf = self.nf
-        estimates = Estimates.from_rows(self._rows)
+        if self._epochs is None:
+            raise ValueError("no estimates to stack")
+        estimates = self._epochs.estimates()
         inn = np.array([r[0:3] for r in self._inn], dtype=float).reshape(-1, 3)
         acc = np.array([r[3:5] for r in self._inn], dtype=bool).reshape(-1, 2)
         innovations = GpsInnovations(inn[:, 0], inn[:, 1], inn[:, 2], acc[:, 0], acc[:, 1])
@@ -431,9 +457,9 @@ class Pipeline(
         """The backward pass over the finished run: smoothed epochs, restarts."""
         log = self.smoother
         rows, restarts = log.smooth(self.nf.layout)
-        if len(rows) != len(self._rows):
-            raise RuntimeError(f"smoother: {len(rows)} epochs for {len(self._rows)} estimates")
-        kept = [r[-2:] for r in self._rows]  # faulty channels, valid
+        if len(rows) != len(self._epochs):
+            raise RuntimeError(f"smoother: {len(rows)} epochs for {len(self._epochs)} estimates")
+        kept = [r[-2:] for r in self._epochs.rest]  # faulty channels, valid
         rows = [(*r, None, None, None, *k) for r, k in zip(rows, kept, strict=True)]
         return Estimates.from_rows(rows), restarts
 

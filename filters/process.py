@@ -25,7 +25,7 @@ class ProcessMixin:
         if self.lag is not None:
             self.lag.start(self.P, phi)
         self.x, p = kf_predict(self.x, self.P, phi, q)
-        self.P = kernels.predicted_covariance(
+        kernels.predicted_covariance(
             p,
             self._body_frame_allowed(),
             self.vel,
@@ -35,6 +35,7 @@ class ProcessMixin:
             f_n,
             t_s,
         )
+        self.P = p
 
     def force_for_jacobian(self, f_n: np.ndarray) -> np.ndarray:
         """The block's mean force (NED, m/s^2) as the transition's ``-[f_n]x`` reads it.

@@ -148,11 +148,9 @@ class RecoveryMixin:
             self._rate_nis_dof.append(self.nf.rate_dof)
         if self._lost is None:
             self._record()
-        elif self.keep_estimates and self._rows:
+        elif self.keep_estimates and self._epochs:
             # the epoch is kept, empty: a lost track's estimates are not valid
-            last = self._rows[-1]
-            nan_like = [None if v is None else np.full(np.shape(v), np.nan) for v in last[1:10]]
-            self._rows.append((float(self._t[i1 - self._base]), *nan_like, 0, False))
+            self._epochs.add_lost(float(self._t[i1 - self._base]))
 
     def _start_again(self, fix: tuple, prev: tuple, i1: int) -> None:
         cfg = self.cfg

@@ -81,7 +81,7 @@ def update_correlated(
     ``S = H P H^T + H M + M^T H^T + R``, ``K = (P H^T + M) S^-1``,
     ``P+ = P - K (H P + M^T)``. With ``m`` None (independent noise) it is filterpy's
     plain update. (Its ``P+`` is not the Joseph form: the filter symmetrises P in the
-    reset that follows every update, :func:`filters.kernels.reset_rows`.)
+    reset that follows every update, :func:`filters.kernels.reset_rows_in_place`.)
     """
     if m is None:
         return kf_update(x, p, z, r, h)
