@@ -59,7 +59,6 @@ from ngnav.records import (
     RunResult,
     TrackLoss,
 )
-from ngnav.rotation import euler_from_quat
 from ngnav.runconfig import RunConfig
 
 #: Where a fix pushed into the pipeline ends (its counters): the one that set position and
@@ -589,17 +588,6 @@ def _feed(pipe: Pipeline, samples: ArraySamples, fixes: GpsFixes, progress) -> N
         if progress is not None:
             progress(i / n_t)
     pipe.finish()
-
-
-def geodetic_estimates(est: Estimates, cfg: RunConfig) -> tuple[np.ndarray, ...]:
-    """Latitude, longitude (deg) and altitude (m) of the estimated positions."""
-    ltp = LocalTangentPlane(cfg.lat0_deg, cfg.lon0_deg, cfg.alt0_m)
-    return ltp.to_geodetic(est.pos_ned_m)
-
-
-def euler_deg(q_nb: np.ndarray) -> np.ndarray:
-    """Roll, pitch, yaw (deg) of quaternions (..., 4)."""
-    return np.rad2deg(euler_from_quat(q_nb))
 
 
 __all__ = [

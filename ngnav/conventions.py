@@ -21,8 +21,3 @@ G0_MPS2: float = 9.80665
 def gravity_n_mps2() -> np.ndarray:
     """Gravity vector in NED, shape (3,), m/s^2: ``[0, 0, +g0]`` (down)."""
     return np.array([0.0, 0.0, G0_MPS2])
-
-
-def g_to_mps2(value_g: float | np.ndarray) -> float | np.ndarray:
-    """Convert accelerations from g to m/s^2."""
-    return value_g * G0_MPS2

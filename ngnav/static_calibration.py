@@ -122,12 +122,6 @@ def calibration_frame(
     return phi, a
 
 
-def axis_errors_in_calibration_frame(real_axes_b: np.ndarray, layout: ArrayLayout) -> np.ndarray:
-    """The axis-error angles (N, 2) of real sensing axes in the calibration frame
-    (:func:`calibration_frame`)."""
-    return calibration_frame(real_axes_b, layout)[1]
-
-
 def _axes(layout: ArrayLayout, a: np.ndarray) -> np.ndarray:
     e1, e2 = perpendicular_basis(layout.axes_b)
     u = layout.axes_b + np.tan(a[:, :1]) * e1 + np.tan(a[:, 1:]) * e2
