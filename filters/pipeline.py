@@ -543,7 +543,7 @@ def run_filter(
         lose_track_at_s=lose_track_at_s,
     )
     try:
-        _feed(pipe, samples, fixes, progress)
+        pipe.replay(samples, fixes, progress)
         return pipe.result()
     except CovarianceError as exc:
         if pipe.started and pipe.n_epochs:
@@ -552,42 +552,6 @@ def run_filter(
     finally:
         if pipe.smoother is not None and pipe._smoothed is None:
             pipe.smoother.close()  # not smoothed: the run stopped
-
-
-def _feed(pipe: Pipeline, samples: ArraySamples, fixes: GpsFixes, progress) -> None:
-    """Push a whole run into ``pipe`` in arrival order and finish it."""
-    t = samples.t_s
-    arrival = fixes.t_s + fixes.latency_s
-    order = np.argsort(arrival, kind="stable")
-    # the sample after which each fix arrives
-    after = np.searchsorted(t, arrival[order], side="right")
-    i = 0
-    n_t = t.shape[0]
-    step = max(1, n_t // 50)
-    for m, j in zip(order.tolist(), after.tolist(), strict=True):
-        while i < j:
-            k = min(j, i + step)
-            pipe.push_samples(t[i:k], samples.accel_mps2[i:k])
-            i = k
-            if progress is not None:
-                progress(i / n_t)
-        pipe.push_fix(
-            fixes.t_s[m],
-            fixes.lat_deg[m],
-            fixes.lon_deg[m],
-            fixes.alt_m[m],
-            fixes.vel_ned_mps[m],
-            fixes.h_acc_m[m],
-            fixes.v_acc_m[m],
-            fixes.vel_acc_mps[m],
-        )
-    while i < n_t:
-        k = min(n_t, i + step)
-        pipe.push_samples(t[i:k], samples.accel_mps2[i:k])
-        i = k
-        if progress is not None:
-            progress(i / n_t)
-    pipe.finish()
 
 
 __all__ = [

@@ -15,6 +15,43 @@ class StreamMixin:
     """Buffer samples and fixes, start the filter when it can, run blocks to the horizon."""
 
     # ------------------------------------------------------------------ input
+    def replay(self, samples, fixes, progress=None) -> None:
+        """Push a whole recorded run (``ArraySamples``, ``GpsFixes``) in arrival order (a
+        fix after the samples before its arrival) and finish; ``progress(fraction)`` as
+        the samples go in."""
+        t = samples.t_s
+        arrival = fixes.t_s + fixes.latency_s
+        order = np.argsort(arrival, kind="stable")
+        # the sample after which each fix arrives
+        after = np.searchsorted(t, arrival[order], side="right")
+        i = 0
+        n_t = t.shape[0]
+        step = max(1, n_t // 50)
+        for m, j in zip(order.tolist(), after.tolist(), strict=True):
+            while i < j:
+                k = min(j, i + step)
+                self.push_samples(t[i:k], samples.accel_mps2[i:k])
+                i = k
+                if progress is not None:
+                    progress(i / n_t)
+            self.push_fix(
+                fixes.t_s[m],
+                fixes.lat_deg[m],
+                fixes.lon_deg[m],
+                fixes.alt_m[m],
+                fixes.vel_ned_mps[m],
+                fixes.h_acc_m[m],
+                fixes.v_acc_m[m],
+                fixes.vel_acc_mps[m],
+            )
+        while i < n_t:
+            k = min(n_t, i + step)
+            self.push_samples(t[i:k], samples.accel_mps2[i:k])
+            i = k
+            if progress is not None:
+                progress(i / n_t)
+        self.finish()
+
     def push_samples(self, t_s: np.ndarray, accel_mps2: np.ndarray) -> int:
         """Take consecutive array samples (K,), (K, N) m/s^2; returns epochs recorded.
 

@@ -650,7 +650,7 @@ def test_bias_states_tell_the_truth_through_the_forecasts_loop():
     8.32 / 8.03 / 9.17 against ``S b``, where its estimates converged (and far more
     against its own ``T S b``), and fails.
     """
-    from filters.pipeline import Pipeline, _feed
+    from filters.pipeline import Pipeline
 
     scn = load_flight("tactical")
     t_end, checks = 4.0, (2.0, 3.0, 4.0)
@@ -675,7 +675,7 @@ def test_bias_states_tell_the_truth_through_the_forecasts_loop():
                     got[j] = float(err @ np.linalg.solve(cov, err))
 
         pipe.on_epoch = lambda _est, pipe=pipe, record=record: record(pipe)
-        _feed(pipe, samples, fixes, None)
+        pipe.replay(samples, fixes)
         nees[i] = [got[j] for j in range(len(checks))]
     lo, hi = chi2.ppf([0.005, 0.995], 6 * runs) / runs
     mean = nees.mean(axis=0)

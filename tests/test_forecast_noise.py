@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from filters.pipeline import Pipeline, _feed
+from filters.pipeline import Pipeline
 from filters.state import RATE, VEL
 from ngnav.predictors import GreyPredictor, LastValuePredictor, LinePredictor, noise_gain
 from ngnav.rotation import dcm_from_quat, quat_from_rotvec
@@ -96,7 +96,7 @@ def _forecast_errors(
 
     pipe = Pipeline(sim.config)
     pipe.on_epoch = lambda _est: grab(pipe)
-    _feed(pipe, samples, fixes, None)
+    pipe.replay(samples, fixes)
     d = np.array(out_d)
     return np.array(out_t), d * d * np.array(out_k)[:, None], pipe
 
@@ -159,7 +159,7 @@ def test_forecast_noise_grows_the_rate_covariance_in_a_roll_out_not_in_a_dive(mo
             mp.setattr(filters.alignment, "FORECAST_ERROR_PERSISTENCE", persistence)
             pipe = Pipeline(cfg)
             pipe.on_epoch = lambda _est, pipe=pipe, grab=grab: grab(pipe)
-            _feed(pipe, sim.samples, sim.fixes, None)
+            pipe.replay(sim.samples, sim.fixes)
         rate_var[persistence] = seen
     steady = rate_var[2.0][33.0] / rate_var[0.0][33.0]
     roll_out = rate_var[2.0][48.0] / rate_var[0.0][48.0]
@@ -176,7 +176,7 @@ def test_the_forecast_errors_persistence_follows_its_correction():
     for corrected, want in ((True, 0.0), (False, 2.0)):
         comp = replace(sim.config.compensation, forecast_correction=corrected)
         pipe = Pipeline(replace(sim.config, compensation=comp))
-        _feed(pipe, sim.samples, sim.fixes, None)
+        pipe.replay(sim.samples, sim.fixes)
         assert pipe._fe_persistence == want
 
 
@@ -233,6 +233,6 @@ def test_forecast_correction_is_a_setting_that_reaches_the_state():
         comp = replace(sim.config.compensation, forecast_correction=on)
         cfg = replace(sim.config, compensation=comp)
         pipe = Pipeline(cfg)
-        _feed(pipe, sim.samples, sim.fixes, None)
+        pipe.replay(sim.samples, sim.fixes)
         ends[on] = (pipe.nf.w.copy(), pipe.nf.vel.copy())
     assert not np.allclose(ends[True][0], ends[False][0], rtol=0.0, atol=1e-12)

@@ -6,7 +6,7 @@ from scipy.stats import chi2
 
 from filters.ekf import FilterNoise, NavFilter
 from filters.evaluate import nees, run_errors
-from filters.pipeline import Pipeline, _feed, run_filter
+from filters.pipeline import Pipeline, run_filter
 from filters.rest import CONFIRM_S, FIX_MAX_AGE_S, RestDetector
 from filters.state import ATT, RATE, VEL
 from ngnav.sim.flight_scenario import load_flight
@@ -222,7 +222,7 @@ def test_zero_rate_updates_fall_only_where_the_vehicle_stands():
     pipe = Pipeline(sim.config, dt_s=float(np.median(np.diff(t))), truth=sim.truth)
     log = []
     pipe.on_epoch = lambda est: log.append((est.t_s, pipe.rest.at_rest))
-    _feed(pipe, sim.samples, sim.fixes, None)
+    pipe.replay(sim.samples, sim.fixes)
     t_ep = np.array([a for a, _ in log])
     at_rest = np.array([b for _, b in log])
     speed = np.linalg.norm(sim.truth.vel_ned_mps, axis=1)
