@@ -526,14 +526,18 @@ def epoch_record(
     cov: np.ndarray,
     e: int,
     p_out: np.ndarray,
-) -> None:
+    aoa_args: tuple,
+) -> float:
     """An epoch's record (``Pipeline._record``, :class:`filters.epochs.EpochStore`): its
     covariance (n, n) written into ``p_out``, and into row ``e`` of ``nav`` (E, 13 + nb)
     ``pos`` (3,), the NED velocity (3,), ``q`` (4,), ``w`` (3,), ``bias`` (nb,) and of
     ``cov`` (E, 12, 12) the covariance's navigation block. With the body-frame velocity
     error (``body_allowed`` and :func:`body_frame_curvature_ok`) the NED velocity's
     second-order part's mean and covariance are added to ``vel`` and P
-    (:func:`ned_velocity_curvature`: the NED velocity a user reads)."""
+    (:func:`ned_velocity_curvature`: the NED velocity a user reads). Returns
+    :func:`aoa_linear_var` of P (not ``p_out``) at ``aoa_args``, its arguments after
+    ``p`` (0 for ``n_aoa`` 0): the epoch's angle-of-attack variance, in the same call."""
+    aoa_var = aoa_linear_var(p, *aoa_args)
     p_out[:] = p
     v = vel.copy()
     if body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps):
@@ -549,6 +553,7 @@ def epoch_record(
     row[10:13] = w
     row[13:] = bias
     cov[e] = p_out[:N_NAV, :N_NAV]
+    return aoa_var
 
 
 # -------- the process model: F, Q and the force curvature
@@ -1099,6 +1104,29 @@ def extrapolated_load(
 
 
 @njit(cache=True)
+def history_and_load(
+    h: np.ndarray,
+    w: np.ndarray,
+    mean: np.ndarray,
+    bias: np.ndarray,
+    wd_smooth: np.ndarray,
+    gain: float,
+    sg_f: np.ndarray,
+    geo: np.ndarray,
+    first: bool,
+    w_now: float,
+    w_prev: float,
+    f_prev: np.ndarray,
+    sg_prev: np.ndarray,
+):
+    """:func:`history_row` (its arguments first) and then :func:`extrapolated_load` of the
+    row's force (``StepMixin._block`` with the angle-of-attack state): one call where
+    there were two. Returns :func:`extrapolated_load`'s three."""
+    mean6 = history_row(h, w, mean, bias, wd_smooth, gain)
+    return extrapolated_load(mean6[3:6], sg_f, geo, first, w_now, w_prev, f_prev, sg_prev)
+
+
+@njit(cache=True)
 def lift_load(f_b: np.ndarray, load_cov: np.ndarray, sin_a: float, cos_a: float, speed: float):
     """The lift law's load (``NavFilter.set_load``, which says why): the lift axis
     ``[sin a, 0, -cos a]`` (3,), ``u = n_w / V^2`` of the force ``f_b`` (3,) and its
@@ -1525,19 +1553,25 @@ def held_rows(chmask: np.ndarray, nfmask: np.ndarray, excluded: int):
 
 @njit(cache=True)
 def flat_line_runs(
-    prev: np.ndarray, a: np.ndarray, run: np.ndarray, flat: np.ndarray, n_flat: int, d2: np.ndarray
-) -> np.ndarray:
+    prev: np.ndarray,
+    a: np.ndarray,
+    run: np.ndarray,
+    flat: np.ndarray,
+    n_flat: int,
+    d2: np.ndarray,
+    rises: np.ndarray,
+) -> int:
     """The flat-line test over a block of readings (``faults.ChannelMonitor``), in place.
 
     ``prev`` (2, N) the two readings before the block, ``a`` (K, N) the block's; ``run``
     (N,) each channel's repeats of its last reading so far and ``flat`` (N,) whether it
     was flat (``n_flat`` identical readings in a row). Updates ``run``, ``flat`` and
     ``prev`` (to the block's last two readings), writes the second differences of the
-    readings into ``d2`` (K, N), and returns the rises of the flat flag as (sample,
-    channel) rows by channel then sample.
+    readings into ``d2`` (K, N) and the rises of the flat flag as (sample, channel) rows
+    by channel then sample into ``rises`` (at least (K N, 2)), and returns how many rises
+    there are (the caller's buffer: a new array every block cost its boxing).
     """
     k, n = a.shape
-    rises = np.empty((k * n, 2), np.int64)
     m = 0
     for c in range(n):
         r = run[c]
@@ -1561,7 +1595,7 @@ def flat_line_runs(
         flat[c] = was
         prev[0, c] = p1
         prev[1, c] = p2
-    return rises[:m]
+    return m
 
 
 @njit(cache=True)
