@@ -185,12 +185,13 @@ class ConstraintsMixin:
             s, ds, _ = min_jerk_step((speed - 0.8 * v_lof) / (0.2 * v_lof))
             self._lift_w, self._lift_dw = float(s), float(ds) / (0.2 * v_lof)
         if self.aoa_k > 0.0 and speed > 1.0:
-            self._lift_axis, self._lift_u, self._lift_u_var = kernels.lift_load(
+            self._lift_u, self._lift_u_var = kernels.lift_load(
                 np.asarray(f_b_mps2, dtype=float),
                 kernels.ABSENT if load_cov is None else np.asarray(load_cov, dtype=float),
                 math.sin(a),
                 math.cos(a),
                 speed,
+                self._lift_axis,  # written: the axis at this angle
             )  # n_w = _lift_axis . f
             recent = self._lift_u_recent
             recent.append(self._lift_u)

@@ -1028,15 +1028,19 @@ def block_means(
     phi_hat6: np.ndarray,
     se6: np.ndarray,
     correct: bool,
+    quad: np.ndarray,
+    r: np.ndarray,
 ):
     """A block's mean features and what its forecast missed (``StepMixin._block``).
 
     ``xs`` (K, m) the compensated features, ``bad`` (K,) the held rows (left out of the
-    means while some are not); ``n_ok`` rows not held. Returns the mean (m,); the mean
-    of the rate products (nq,) over the rows not held (empty without); the forecast's
-    error ``d = mean[:6] - bias6 - phi_hat6`` (6,) (empty without a forecast,
-    ``phi_hat6`` (0,)); and, with ``correct`` and a finite ``d``, ``r = se6 d`` (m,), the
-    error's share of every feature, taken out of both means (else (0,)).
+    means while some are not); ``n_ok`` rows not held. Returns the mean (m,); the
+    forecast's error ``d = mean[:6] - bias6 - phi_hat6`` (6,) (empty without a forecast,
+    ``phi_hat6`` (0,)); and whether, with ``correct`` and a finite ``d``, ``se6 d`` (m,),
+    the error's share of every feature, was taken out of both means. Writes into the
+    caller's buffers (arrays a kernel returns cost their boxing): the mean of the rate
+    products (nq,) over the rows not held into ``quad`` when ``n_ok`` and ``nq``, and
+    ``se6 d`` into ``r`` (m,) when taken out.
     """
     k, m = xs.shape
     some = 0 < n_ok < k
@@ -1049,9 +1053,9 @@ def block_means(
         for j in range(m):
             mean[j] += xs[s, j]
     mean *= 1.0 / n
-    quad = np.zeros(0)
-    if n_ok and nq:
-        quad = np.zeros(nq)
+    with_quad = n_ok > 0 and nq > 0
+    if with_quad:
+        quad[:] = 0.0
         for s in range(k):
             if n_ok < k and bad[s]:
                 continue
@@ -1059,15 +1063,17 @@ def block_means(
                 quad[j] += xs[s, m - nq + j]
         quad *= 1.0 / n_ok
     d = np.zeros(0)
-    r = np.zeros(0)
+    corrected = False
     if phi_hat6.shape[0]:
         d = mean[:6] - bias6 - phi_hat6
         if correct and np.isfinite(d.sum()):
-            r = np.ascontiguousarray(se6) @ d
+            r[:] = np.ascontiguousarray(se6) @ d
             mean -= r
-            if quad.shape[0]:
-                quad = quad - r[m - nq :]
-    return mean, quad, d, r
+            if with_quad:
+                for j in range(nq):
+                    quad[j] = quad[j] - r[m - nq + j]
+            corrected = True
+    return mean, d, corrected
 
 
 @njit(cache=True)
@@ -1127,11 +1133,18 @@ def history_and_load(
 
 
 @njit(cache=True)
-def lift_load(f_b: np.ndarray, load_cov: np.ndarray, sin_a: float, cos_a: float, speed: float):
+def lift_load(
+    f_b: np.ndarray,
+    load_cov: np.ndarray,
+    sin_a: float,
+    cos_a: float,
+    speed: float,
+    axis: np.ndarray,
+):
     """The lift law's load (``NavFilter.set_load``, which says why): the lift axis
-    ``[sin a, 0, -cos a]`` (3,), ``u = n_w / V^2`` of the force ``f_b`` (3,) and its
-    variance from the force's noise ``load_cov`` (3, 3; (0, 0): none, 0)."""
-    axis = np.empty(3)
+    ``[sin a, 0, -cos a]`` written into ``axis`` (3,), and returned ``u = n_w / V^2`` of
+    the force ``f_b`` (3,) and its variance from the force's noise ``load_cov`` (3, 3;
+    (0, 0): none, 0)."""
     axis[0], axis[1], axis[2] = sin_a, 0.0, -cos_a
     n_w = axis @ f_b
     # products, not powers: a diverged speed gives 0 here, not an overflow
@@ -1139,7 +1152,7 @@ def lift_load(f_b: np.ndarray, load_cov: np.ndarray, sin_a: float, cos_a: float,
     u_var = 0.0
     if load_cov.shape[0]:
         u_var = (axis @ load_cov @ axis) / speed2 / speed2
-    return axis, n_w / speed2, u_var
+    return n_w / speed2, u_var
 
 
 @njit(cache=True)

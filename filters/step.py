@@ -150,7 +150,8 @@ class StepMixin:
             )
             fb, qb = nf.propagation_matrices(kk, dt, c_true[i0], f_n_true, sg_true)
             _, p_bound = kf_predict(np.zeros(nf.layout.n), p_bound, fb, qb)
-        self._last_mean, quad_mean, d, r_all = kernels.block_means(
+        quad_mean, r_all = self._mean_bufs  # the mean rate products, the error's share
+        self._last_mean, d, corrected = kernels.block_means(
             xs,
             bad,
             n_ok,
@@ -159,12 +160,14 @@ class StepMixin:
             kernels.NO_VECTOR if phi_hat is None else phi_hat[0:6],
             kernels.ABSENT if self._se is None else self._se[:, 0:6],
             self._fe_correct,
+            quad_mean,
+            r_all,
         )
         if phi_hat is not None:
             self.last_forecast_error = d
             if self._fe_persistence > 0.0:
                 self._forecast_noise(d, n_ok, kk * dt)
-            if r_all.shape[0]:
+            if corrected:
                 # what the forecast's error left in the block, out of the state and history
                 # before the rate products are compared, from them too (kernels.block_means
                 # took it out of the means): left in, the rate update took the rate error it
