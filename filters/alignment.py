@@ -242,6 +242,8 @@ class AlignmentMixin:
         self._wd_smooth = np.zeros(3)
         self._smooth_gain = min(1.0, 1.0 / (WDOT_SMOOTHING_S * cfg.filter.rate_hz))
         self._phi_hat = np.zeros(12) if self.predictor is not None else None
+        #: kernels.block_means's outputs (nq,) and (k,), kept: written every block
+        self._mean_bufs = (np.zeros(self._nq), np.zeros(self._k))
         # the forecast's error (see _forecast_noise): its noise floor, the block means'
         # own noise plus what the forecast carries of the history's
         comp = cfg.compensation

@@ -88,12 +88,16 @@ class ConstraintsMixin:
         """1-sigma of :attr:`aoa`, rad: :meth:`aoa_jacobian`'s linear part, the lift-off
         blend's beyond it (:meth:`blend_remainder_var`) and the load's noise
         (:meth:`set_load`); 0 without the state."""
-        lift = self._unblended_aoa()
-        var = (
+        return self.aoa_sigma_from(
             kernels.aoa_linear_var(self.P, *self._aoa_jacobian_args(self.vel))
-            + lift * lift * self.blend_remainder_var()
-            + self._load_angle_var()
         )
+
+    def aoa_sigma_from(self, linear_var: float) -> float:
+        """:attr:`aoa_sigma` (rad) from its linear part's variance ``linear_var``, rad^2
+        (:func:`filters.kernels.aoa_linear_var` at :meth:`_aoa_jacobian_args`, which the
+        epoch's record computes with the rest of it)."""
+        lift = self._unblended_aoa()
+        var = linear_var + lift * lift * self.blend_remainder_var() + self._load_angle_var()
         return math.sqrt(var) if var >= 0.0 else math.nan
 
     def _load_angle_var(self) -> float:
@@ -181,12 +185,13 @@ class ConstraintsMixin:
             s, ds, _ = min_jerk_step((speed - 0.8 * v_lof) / (0.2 * v_lof))
             self._lift_w, self._lift_dw = float(s), float(ds) / (0.2 * v_lof)
         if self.aoa_k > 0.0 and speed > 1.0:
-            self._lift_axis, self._lift_u, self._lift_u_var = kernels.lift_load(
+            self._lift_u, self._lift_u_var = kernels.lift_load(
                 np.asarray(f_b_mps2, dtype=float),
                 kernels.ABSENT if load_cov is None else np.asarray(load_cov, dtype=float),
                 math.sin(a),
                 math.cos(a),
                 speed,
+                self._lift_axis,  # written: the axis at this angle
             )  # n_w = _lift_axis . f
             recent = self._lift_u_recent
             recent.append(self._lift_u)

@@ -311,8 +311,9 @@ class NavFilter(
         #: kernels.inject_error's state offsets, and its Jacobian rows' output
         self._inject_offsets = (lay.bias.start, lay.dr.start, lay.cal.start, lay.aoa.start, n_aoa)
         self._g_rows = np.zeros((3, 3, 3))
-        #: kernels.propagate_block's F and Q (n, n), written every block
-        self._fq_out = (np.zeros((n, n)), np.zeros((n, n)))
+        #: kernels.propagate_block's F and Q (n, n), C_nb at the block start (3, 3) and the
+        #: mean NED force (3,), written every block
+        self._fq_out = (np.zeros((n, n)), np.zeros((n, n)), np.zeros((3, 3)), np.zeros(3))
         self._g = gravity_n_mps2()
         self._consec_rejects = 0
         self._consec_slip_rejects = 0

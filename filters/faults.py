@@ -157,6 +157,7 @@ class ChannelMonitor:
         self._win = np.empty((NOISE_WINDOW, n))
         self._win_n = 0
         self._flat = np.zeros(n, dtype=bool)
+        self._rises = np.empty((n, 2), np.int64)  # kernels.flat_line_runs's output, grown
         self._noisy = np.zeros(n, dtype=bool)
         self._t_last = np.nan  # the last sample's time, s
         #: Every fault found, in the order found.
@@ -213,35 +214,32 @@ class ChannelMonitor:
         a = np.asarray(raw_mps2, dtype=float).reshape(k, self.n_channels)
         t_before = self._t_last
         self._t_last = float(t[-1])
-
-        def interval() -> float:
-            """The sample interval, s (read only to date a fault's onset)."""
-            if k > 1:
-                return _median(np.diff(t))
-            return float(t[0] - t_before) if np.isfinite(t_before) else 0.0
-
         # -- flat line: repeats of the previous reading, all channels (each rise of the
         # flat flag is an alarm; the first one opens the event); and the second
         # differences for the noise level, straight into its window when they fit
         w0 = self._win_n
         direct = w0 + k <= NOISE_WINDOW
         d2 = self._win[w0 : w0 + k] if direct else np.empty((k, self.n_channels))
-        rises = kernels.flat_line_runs(self._prev, a, self._run, self._flat, FLAT_RUN, d2)
-        for kh, c in rises.tolist():  # by channel, then time
-            value = a[kh, c]
-            if value == 0.0:
-                kind = "dead"
-            elif abs(value) >= self.range_mps2 * (1 - 1e-9):
-                kind = "saturated"
-            else:
-                kind = "stuck"
-            self._isolate(c, kind, float(t[kh]), float(t[kh]) - (FLAT_RUN - 1) * interval())
+        if self._rises.shape[0] < k * self.n_channels:
+            self._rises = np.empty((k * self.n_channels, 2), np.int64)
+        m = kernels.flat_line_runs(self._prev, a, self._run, self._flat, FLAT_RUN, d2, self._rises)
+        if m:
+            for kh, c in self._rises[:m].tolist():  # by channel, then time
+                value = a[kh, c]
+                if value == 0.0:
+                    kind = "dead"
+                elif abs(value) >= self.range_mps2 * (1 - 1e-9):
+                    kind = "saturated"
+                else:
+                    kind = "stuck"
+                onset = float(t[kh]) - (FLAT_RUN - 1) * _interval(t, t_before)
+                self._isolate(c, kind, float(t[kh]), onset)
         # -- noise level: the median square of second differences over whole windows
         if direct:
             self._win_n = w0 + k
             if self._win_n == NOISE_WINDOW:
                 self._win_n = 0
-                self._noise_window(float(t[k - 1]), interval)
+                self._noise_window(float(t[k - 1]), t, t_before)
             return
         k0 = 0
         while k0 < k:
@@ -252,11 +250,12 @@ class ChannelMonitor:
             if self._win_n < NOISE_WINDOW:
                 break
             self._win_n = 0
-            self._noise_window(float(t[k1 - 1]), interval)
+            self._noise_window(float(t[k1 - 1]), t, t_before)
 
-    def _noise_window(self, t_end: float, interval) -> None:
-        """The noise-level test on a whole window ending at ``t_end`` (s); ``interval()``
-        the sample interval, s."""
+    def _noise_window(self, t_end: float, t: np.ndarray, t_before: float) -> None:
+        """The noise-level test on a whole window ending at ``t_end`` (s), in the samples
+        ``t`` (K,) observed after the one at ``t_before`` (s; their interval dates an
+        onset, :func:`_interval`)."""
         if np.isnan(self._win).any():
             with np.errstate(all="ignore"), warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # an all-NaN channel
@@ -265,7 +264,7 @@ class ChannelMonitor:
             ratio = kernels.column_median_squares(self._win) / self._d2_median
         noisy = ratio > NOISY_RATIO
         for c in np.flatnonzero(noisy & ~self._noisy).tolist():
-            onset = t_end - (NOISE_WINDOW - 1) * interval()
+            onset = t_end - (NOISE_WINDOW - 1) * _interval(t, t_before)
             self._isolate(c, "noisy", t_end, onset)
         self._noisy = noisy
 
@@ -327,6 +326,14 @@ class ChannelMonitor:
             return
         self.events.append(FaultEvent((channel + 1,), kind, t_s, t_s))
         self._open[channel] = len(self.events) - 1
+
+
+def _interval(t: np.ndarray, t_before: float) -> float:
+    """The sample interval, s, of the samples ``t`` (K,) observed after the one at
+    ``t_before`` (NaN: none); read only to date a fault's onset."""
+    if t.shape[0] > 1:
+        return _median(np.diff(t))
+    return float(t[0] - t_before) if np.isfinite(t_before) else 0.0
 
 
 def _median(x: np.ndarray) -> float:

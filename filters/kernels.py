@@ -272,9 +272,9 @@ def remove_feature_residual(
     dt: float,
 ):
     """A constant error ``r`` (6,) in a block's solved ``[wdot, f]`` out of the nominal
-    state propagated with it for ``t_s`` s (``NavFilter.remove_feature_residual``) and out
-    of the block's rates ``w_blk`` (K, 3) at its samples (interval ``dt``). Returns the
-    new rate, attitude, velocity, position and block rates."""
+    state propagated with it for ``t_s`` s (``NavFilter.remove_feature_residual``) and,
+    in place, out of the block's rates ``w_blk`` (K, 3) at its samples (interval ``dt``).
+    Returns the new rate, attitude, velocity and position."""
     t2 = 0.5 * t_s * t_s
     c = dcm(q)
     w_new = w - t_s * r[0:3]
@@ -282,11 +282,10 @@ def remove_feature_residual(
     dv = c @ np.ascontiguousarray(r[3:6])
     vel_new = vel - t_s * dv
     pos_new = pos - t2 * dv
-    w_out = w_blk.copy()
     for s in range(w_blk.shape[0]):
         for a in range(3):
-            w_out[s, a] = w_blk[s, a] - ((s + 1) * dt) * r[a]
-    return w_new, q_new, vel_new, pos_new, w_out
+            w_blk[s, a] = w_blk[s, a] - ((s + 1) * dt) * r[a]
+    return w_new, q_new, vel_new, pos_new
 
 
 @njit(cache=True)
@@ -527,14 +526,18 @@ def epoch_record(
     cov: np.ndarray,
     e: int,
     p_out: np.ndarray,
-) -> None:
+    aoa_args: tuple,
+) -> float:
     """An epoch's record (``Pipeline._record``, :class:`filters.epochs.EpochStore`): its
     covariance (n, n) written into ``p_out``, and into row ``e`` of ``nav`` (E, 13 + nb)
     ``pos`` (3,), the NED velocity (3,), ``q`` (4,), ``w`` (3,), ``bias`` (nb,) and of
     ``cov`` (E, 12, 12) the covariance's navigation block. With the body-frame velocity
     error (``body_allowed`` and :func:`body_frame_curvature_ok`) the NED velocity's
     second-order part's mean and covariance are added to ``vel`` and P
-    (:func:`ned_velocity_curvature`: the NED velocity a user reads)."""
+    (:func:`ned_velocity_curvature`: the NED velocity a user reads). Returns
+    :func:`aoa_linear_var` of P (not ``p_out``) at ``aoa_args``, its arguments after
+    ``p`` (0 for ``n_aoa`` 0): the epoch's angle-of-attack variance, in the same call."""
+    aoa_var = aoa_linear_var(p, *aoa_args)
     p_out[:] = p
     v = vel.copy()
     if body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps):
@@ -550,6 +553,7 @@ def epoch_record(
     row[10:13] = w
     row[13:] = bias
     cov[e] = p_out[:N_NAV, :N_NAV]
+    return aoa_var
 
 
 # -------- the process model: F, Q and the force curvature
@@ -802,6 +806,8 @@ def propagate_block(
     q_walks: np.ndarray,
     phi: np.ndarray,
     qn: np.ndarray,
+    c0_out: np.ndarray,
+    f_n_out: np.ndarray,
 ):
     """One block's nominal propagation and its transition and noise, before filterpy's
     predict (``NavFilter.propagate``).
@@ -810,9 +816,12 @@ def propagate_block(
     body-frame velocity error when ``body_allowed`` and :func:`body_frame_curvature_ok`;
     then :func:`propagation_matrices` at the block-start ``C``, the block's mean force
     shrunk by the attitude's uncertainty (:func:`shrunk_force`) and the block-end rate.
-    Returns the rates at the K samples (K, 3), the new ``q``, ``pos``, ``vel`` and rate
-    (3,), ``C_nb`` at the block start and the block's mean NED force (3,); writes F and Q
-    (n, n) into ``phi`` and ``qn``.
+    Returns the rates at the K samples (K, 3) and the new ``q``, ``pos``, ``vel`` and
+    rate (3,); writes F and Q (n, n) into ``phi`` and ``qn``, ``C_nb`` at the block start
+    (3, 3) into ``c0_out``, the block's mean NED force (3,) into ``f_n_out``, and the
+    block's last samples ``wdot[-1]``, ``f[-1]`` (3,) into ``last_wdot``, ``last_f`` (the
+    next block's first interval starts there). Outputs into the caller's arrays, not new
+    ones: each array a kernel returns costs its boxing (about 0.4 us).
     """
     bw, bf = feature_offset(bias, sg, geo)
     body = body_allowed and body_frame_curvature_ok(p, vel, max_frame_mps)
@@ -826,7 +835,11 @@ def propagate_block(
         fc_base, f_j, c0, bias_effect_f, bias0, quad_into, quad6_d, w_end, sg, dr0, geo, axes,
         solve_t, k * dt, q12_body, q_walks, phi, qn,
     )  # fmt: skip
-    return w, q_new, pos_new, vel_new, w_end, c0, f_n
+    c0_out[:] = c0
+    f_n_out[:] = f_n
+    last_wdot[:] = wdot[k - 1]  # read by propagate_nominal above, no longer needed
+    last_f[:] = f[k - 1]
+    return w, q_new, pos_new, vel_new, w_end
 
 
 @njit(cache=True)
@@ -1015,15 +1028,19 @@ def block_means(
     phi_hat6: np.ndarray,
     se6: np.ndarray,
     correct: bool,
+    quad: np.ndarray,
+    r: np.ndarray,
 ):
     """A block's mean features and what its forecast missed (``StepMixin._block``).
 
     ``xs`` (K, m) the compensated features, ``bad`` (K,) the held rows (left out of the
-    means while some are not); ``n_ok`` rows not held. Returns the mean (m,); the mean
-    of the rate products (nq,) over the rows not held (empty without); the forecast's
-    error ``d = mean[:6] - bias6 - phi_hat6`` (6,) (empty without a forecast,
-    ``phi_hat6`` (0,)); and, with ``correct`` and a finite ``d``, ``r = se6 d`` (m,), the
-    error's share of every feature, taken out of both means (else (0,)).
+    means while some are not); ``n_ok`` rows not held. Returns the mean (m,); the
+    forecast's error ``d = mean[:6] - bias6 - phi_hat6`` (6,) (empty without a forecast,
+    ``phi_hat6`` (0,)); and whether, with ``correct`` and a finite ``d``, ``se6 d`` (m,),
+    the error's share of every feature, was taken out of both means. Writes into the
+    caller's buffers (arrays a kernel returns cost their boxing): the mean of the rate
+    products (nq,) over the rows not held into ``quad`` when ``n_ok`` and ``nq``, and
+    ``se6 d`` into ``r`` (m,) when taken out.
     """
     k, m = xs.shape
     some = 0 < n_ok < k
@@ -1036,9 +1053,9 @@ def block_means(
         for j in range(m):
             mean[j] += xs[s, j]
     mean *= 1.0 / n
-    quad = np.zeros(0)
-    if n_ok and nq:
-        quad = np.zeros(nq)
+    with_quad = n_ok > 0 and nq > 0
+    if with_quad:
+        quad[:] = 0.0
         for s in range(k):
             if n_ok < k and bad[s]:
                 continue
@@ -1046,15 +1063,17 @@ def block_means(
                 quad[j] += xs[s, m - nq + j]
         quad *= 1.0 / n_ok
     d = np.zeros(0)
-    r = np.zeros(0)
+    corrected = False
     if phi_hat6.shape[0]:
         d = mean[:6] - bias6 - phi_hat6
         if correct and np.isfinite(d.sum()):
-            r = np.ascontiguousarray(se6) @ d
+            r[:] = np.ascontiguousarray(se6) @ d
             mean -= r
-            if quad.shape[0]:
-                quad = quad - r[m - nq :]
-    return mean, quad, d, r
+            if with_quad:
+                for j in range(nq):
+                    quad[j] = quad[j] - r[m - nq + j]
+            corrected = True
+    return mean, d, corrected
 
 
 @njit(cache=True)
@@ -1091,11 +1110,41 @@ def extrapolated_load(
 
 
 @njit(cache=True)
-def lift_load(f_b: np.ndarray, load_cov: np.ndarray, sin_a: float, cos_a: float, speed: float):
+def history_and_load(
+    h: np.ndarray,
+    w: np.ndarray,
+    mean: np.ndarray,
+    bias: np.ndarray,
+    wd_smooth: np.ndarray,
+    gain: float,
+    sg_f: np.ndarray,
+    geo: np.ndarray,
+    first: bool,
+    w_now: float,
+    w_prev: float,
+    f_prev: np.ndarray,
+    sg_prev: np.ndarray,
+):
+    """:func:`history_row` (its arguments first) and then :func:`extrapolated_load` of the
+    row's force (``StepMixin._block`` with the angle-of-attack state): one call where
+    there were two. Returns :func:`extrapolated_load`'s three."""
+    mean6 = history_row(h, w, mean, bias, wd_smooth, gain)
+    return extrapolated_load(mean6[3:6], sg_f, geo, first, w_now, w_prev, f_prev, sg_prev)
+
+
+@njit(cache=True)
+def lift_load(
+    f_b: np.ndarray,
+    load_cov: np.ndarray,
+    sin_a: float,
+    cos_a: float,
+    speed: float,
+    axis: np.ndarray,
+):
     """The lift law's load (``NavFilter.set_load``, which says why): the lift axis
-    ``[sin a, 0, -cos a]`` (3,), ``u = n_w / V^2`` of the force ``f_b`` (3,) and its
-    variance from the force's noise ``load_cov`` (3, 3; (0, 0): none, 0)."""
-    axis = np.empty(3)
+    ``[sin a, 0, -cos a]`` written into ``axis`` (3,), and returned ``u = n_w / V^2`` of
+    the force ``f_b`` (3,) and its variance from the force's noise ``load_cov`` (3, 3;
+    (0, 0): none, 0)."""
     axis[0], axis[1], axis[2] = sin_a, 0.0, -cos_a
     n_w = axis @ f_b
     # products, not powers: a diverged speed gives 0 here, not an overflow
@@ -1103,7 +1152,7 @@ def lift_load(f_b: np.ndarray, load_cov: np.ndarray, sin_a: float, cos_a: float,
     u_var = 0.0
     if load_cov.shape[0]:
         u_var = (axis @ load_cov @ axis) / speed2 / speed2
-    return axis, n_w / speed2, u_var
+    return n_w / speed2, u_var
 
 
 @njit(cache=True)
@@ -1424,10 +1473,31 @@ def aoa_jacobian(
 
 
 @njit(cache=True)
-def aoa_linear_var(p: np.ndarray, *jacobian_args) -> float:
+def aoa_linear_var(
+    p: np.ndarray,
+    n: int,
+    aoa0: int,
+    n_aoa: int,
+    lift_w: float,
+    lift_u_jac: float,
+    vel: np.ndarray,
+    lift_dw: float,
+    lift: float,
+    aoa_k: float,
+    lift_axis: np.ndarray,
+    bias_effect_f: np.ndarray,
+    bias0: int,
+    lift_sg_f: np.ndarray,
+    dr0: int,
+) -> float:
     """``j P j`` for :func:`aoa_jacobian`'s ``j`` (its arguments follow ``p`` (n, n)): the
-    angle of attack's variance through its Jacobian (``NavFilter.aoa_sigma``)."""
-    j = aoa_jacobian(*jacobian_args)
+    angle of attack's variance through its Jacobian (``NavFilter.aoa_sigma``). The
+    arguments are spelled out: a ``*args`` signature made every call pack them (0.2 us of
+    its 2)."""
+    j = aoa_jacobian(
+        n, aoa0, n_aoa, lift_w, lift_u_jac, vel, lift_dw, lift, aoa_k, lift_axis, bias_effect_f,
+        bias0, lift_sg_f, dr0,
+    )  # fmt: skip
     n = j.shape[0]
     var = 0.0
     for a in range(n):
@@ -1442,15 +1512,28 @@ def aoa_linear_var(p: np.ndarray, *jacobian_args) -> float:
 # -------- the covariance check and the channels' health tests
 
 
+#: A float64's exponent bits: all set for an infinity or a NaN, and only then.
+_EXPONENT = np.uint64(0x7FF0000000000000)
+
+
 @njit(cache=True)
 def covariance_flaw(p: np.ndarray) -> int:
     """The per-block check of P: 0 if finite with a positive diagonal, 1 if not finite,
-    2 if a variance is not positive (``NavFilter.check_covariance``)."""
+    2 if a variance is not positive (``NavFilter.check_covariance``).
+
+    Finiteness from the bits: the largest exponent field over P is all ones exactly when
+    some entry is infinite or NaN (a loop without early exits the compiler vectorises:
+    0.4 us a call for a 50-state P, 1.6 us testing ``np.isfinite`` entry by entry).
+    """
     n = p.shape[0]
-    for i in range(n):
-        for j in range(n):
-            if not np.isfinite(p[i, j]):
-                return 1
+    bits = np.ascontiguousarray(p).reshape(-1).view(np.uint64)
+    top = np.uint64(0)
+    for i in range(bits.shape[0]):
+        e = bits[i] & _EXPONENT
+        if e > top:
+            top = e
+    if top == _EXPONENT:
+        return 1
     for i in range(n):
         if p[i, i] <= 0.0:
             return 2
@@ -1483,19 +1566,25 @@ def held_rows(chmask: np.ndarray, nfmask: np.ndarray, excluded: int):
 
 @njit(cache=True)
 def flat_line_runs(
-    prev: np.ndarray, a: np.ndarray, run: np.ndarray, flat: np.ndarray, n_flat: int, d2: np.ndarray
-) -> np.ndarray:
+    prev: np.ndarray,
+    a: np.ndarray,
+    run: np.ndarray,
+    flat: np.ndarray,
+    n_flat: int,
+    d2: np.ndarray,
+    rises: np.ndarray,
+) -> int:
     """The flat-line test over a block of readings (``faults.ChannelMonitor``), in place.
 
     ``prev`` (2, N) the two readings before the block, ``a`` (K, N) the block's; ``run``
     (N,) each channel's repeats of its last reading so far and ``flat`` (N,) whether it
     was flat (``n_flat`` identical readings in a row). Updates ``run``, ``flat`` and
     ``prev`` (to the block's last two readings), writes the second differences of the
-    readings into ``d2`` (K, N), and returns the rises of the flat flag as (sample,
-    channel) rows by channel then sample.
+    readings into ``d2`` (K, N) and the rises of the flat flag as (sample, channel) rows
+    by channel then sample into ``rises`` (at least (K N, 2)), and returns how many rises
+    there are (the caller's buffer: a new array every block cost its boxing).
     """
     k, n = a.shape
-    rises = np.empty((k * n, 2), np.int64)
     m = 0
     for c in range(n):
         r = run[c]
@@ -1519,7 +1608,7 @@ def flat_line_runs(
         flat[c] = was
         prev[0, c] = p1
         prev[1, c] = p2
-    return rises[:m]
+    return m
 
 
 @njit(cache=True)

@@ -62,8 +62,10 @@ class NominalMixin:
         # force's and gravity's second-order means for the velocity error's frame (the
         # truth's-force sign, tried, was worse: docs/design.md, "Process model"); then
         # the block's F and Q (propagation_matrices, at force_for_jacobian's force)
-        phi, q = self._fq_out  # filterpy's predict reads them and keeps neither
-        w, self.q, self.pos, self.vel, self.w, c0, f_n = kernels.propagate_block(
+        # filterpy's predict reads F and Q and keeps neither; C_nb at the block start is
+        # this block's rate measurement's, the mean force its predict's: written in place
+        phi, q, c0, f_n = self._fq_out
+        w, self.q, self.pos, self.vel, self.w = kernels.propagate_block(
             self.q,
             self.pos,
             self.vel,
@@ -96,9 +98,9 @@ class NominalMixin:
             self._q_walks(t),
             phi,
             q,
-        )
-        self._last_wdot = wdot[-1].copy()
-        self._last_f = f[-1].copy()
+            c0,
+            f_n,
+        )  # and the block's last samples into _last_wdot and _last_f (its own arrays)
         self.t_s += t
         self._predict_covariance(phi, q, f_n, t)
         self._block = (k, dt, c0)  # for the rate measurement of this block
@@ -168,13 +170,14 @@ class NominalMixin:
         block's turn, the propagation's second-order attitude-covariance factor on
         ``C f`` and what an attitude residual does through gravity. The covariance is
         left as it is. With ``w_block`` (K, 3), the block's rates at its samples
-        (interval ``dt``), returns them without the residual's ``r (s + 1) dt``.
+        (interval ``dt``), takes the residual's ``r (s + 1) dt`` out of them in place and
+        returns them.
         """
         w_blk = _NO_RATES if w_block is None else w_block
-        self.w, self.q, self.vel, self.pos, w_out = kernels.remove_feature_residual(
+        self.w, self.q, self.vel, self.pos = kernels.remove_feature_residual(
             self.q, self.w, self.vel, self.pos, np.asarray(r_b, dtype=float), t_s, w_blk, dt
         )
-        return None if w_block is None else w_out
+        return w_block
 
     # -------------------------------------------------------------- internals
     def _inject(self) -> None:

@@ -75,6 +75,11 @@ FIX_OUTCOMES = (
 )
 
 
+#: kernels.epoch_record's angle-of-attack arguments without the state (it returns 0).
+_V, _M = kernels.NO_VECTOR, kernels.ABSENT
+_NO_AOA = (0, 0, 0, 0.0, 0.0, _V, 0.0, 0.0, 0.0, _V, _M, 0, _M, 0)
+
+
 class Pipeline(
     StreamMixin, AlignmentMixin, StepMixin, ExclusionMixin, SuspectsMixin, RecoveryMixin
 ):
@@ -297,13 +302,12 @@ class Pipeline(
         elif not self.keep_estimates:
             store.clear()
         lay = nf.layout
-        aoa = (nf.aoa, nf.aoa_sigma) if lay.n_aoa else (None, None)
         bound = None if pb is None else pb.copy()
         e = store.next_row()
         # with the body-frame velocity error, the NED velocity a user reads: its
-        # second-order part's mean and covariance
+        # second-order part's mean and covariance; and the angle of attack's variance
         p = store.p
-        kernels.epoch_record(
+        aoa_var = kernels.epoch_record(
             nf.P,
             nf.vel,
             nf._body_frame_allowed(),
@@ -316,7 +320,9 @@ class Pipeline(
             store.cov,
             e,
             p,
+            nf._aoa_jacobian_args(nf.vel) if lay.n_aoa else _NO_AOA,
         )
+        aoa = (nf.aoa, nf.aoa_sigma_from(aoa_var)) if lay.n_aoa else (None, None)
         c = nf.counters
         if self._converging and self._converged(p):
             self._converging = False

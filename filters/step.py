@@ -150,7 +150,8 @@ class StepMixin:
             )
             fb, qb = nf.propagation_matrices(kk, dt, c_true[i0], f_n_true, sg_true)
             _, p_bound = kf_predict(np.zeros(nf.layout.n), p_bound, fb, qb)
-        self._last_mean, quad_mean, d, r_all = kernels.block_means(
+        quad_mean, r_all = self._mean_bufs  # the mean rate products, the error's share
+        self._last_mean, d, corrected = kernels.block_means(
             xs,
             bad,
             n_ok,
@@ -159,12 +160,14 @@ class StepMixin:
             kernels.NO_VECTOR if phi_hat is None else phi_hat[0:6],
             kernels.ABSENT if self._se is None else self._se[:, 0:6],
             self._fe_correct,
+            quad_mean,
+            r_all,
         )
         if phi_hat is not None:
             self.last_forecast_error = d
             if self._fe_persistence > 0.0:
                 self._forecast_noise(d, n_ok, kk * dt)
-            if r_all.shape[0]:
+            if corrected:
                 # what the forecast's error left in the block, out of the state and history
                 # before the rate products are compared, from them too (kernels.block_means
                 # took it out of the means): left in, the rate update took the rate error it
@@ -205,14 +208,17 @@ class StepMixin:
             # a sliding window: keep the rows the next forecasts read
             self._hist[:window] = self._hist[row - window : row]
             row = window
-        # the history's row: the rate and the block's [wdot, f], biases removed (mean6)
-        mean6 = kernels.history_row(
-            self._hist[row], nf.w, self._last_mean, nf.bias, self._wd_smooth, self._smooth_gain
-        )
+        # the history's row: the rate and the block's [wdot, f], biases removed (with the
+        # angle-of-attack state, in the same kernel as the load below)
+        hist_row = self._hist[row]
         self._h_n = row + 1
         if rest is not None:
             rest.observe_block(nf.t_s, self._last_mean[0:6], n_ok)
-        if nf.layout.n_aoa:
+        if not nf.layout.n_aoa:
+            kernels.history_row(
+                hist_row, nf.w, self._last_mean, nf.bias, self._wd_smooth, self._smooth_gain
+            )
+        else:
             # the block mean lags the block end by (k - 1) / 2 samples: extrapolate it
             # there (load_extrapolation_weights)
             # (measured: the lift law on tactical's 100 Hz block means was up to 0.07 deg
@@ -229,8 +235,13 @@ class StepMixin:
                 w2 = w_now**2 / k_now + w_prev**2 / self._k_load_prev
             sg_f = None if sg is None else sg[3:6]
             sg_prev = self._sg_load_prev
-            f_mean, f_load, sg_load = kernels.extrapolated_load(
-                mean6[3:6],
+            f_mean, f_load, sg_load = kernels.history_and_load(
+                hist_row,
+                nf.w,
+                self._last_mean,
+                nf.bias,
+                self._wd_smooth,
+                self._smooth_gain,
                 kernels.ABSENT if sg_f is None else sg_f,
                 nf.geometry_estimates(),
                 first,

@@ -7,6 +7,7 @@ import numpy as np
 
 from filters import kernels
 from filters.epochs import CHUNK_EPOCHS, EpochStore
+from filters.pipeline import _NO_AOA
 from filters.state import N_NAV
 from ngnav.records import Estimates
 
@@ -18,7 +19,9 @@ def _record(store: EpochStore, rng: np.random.Generator, t_s: float, n: int, nb:
     p = a @ a.T
     pos, vel, q, w, bias = (rng.normal(size=m) for m in (3, 3, 4, 3, nb))
     e = store.next_row()
-    kernels.epoch_record(p, vel, False, 0.0, pos, q, w, bias, store.nav, store.cov, e, store.p)
+    kernels.epoch_record(
+        p, vel, False, 0.0, pos, q, w, bias, store.nav, store.cov, e, store.p, _NO_AOA
+    )
     rest = (t_s, None, float(rng.normal()), float(rng.random()), e % 3, True)
     store.rest.append(rest)
     np.testing.assert_array_equal(store.p, p)
