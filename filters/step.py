@@ -24,6 +24,7 @@ from filters.supervision import (
     REOPEN_RATE_SIGMA_RPS,
     REOPEN_TILT_SIGMA_RAD,
     RESET_AFTER_REJECTS,
+    heading_sigma_rad,
     tilt_sigma_rad,
 )
 from filters.updates import update_correlated
@@ -428,3 +429,15 @@ class StepMixin:
             if course is not None and not nf.update_heading(*course)[1]:
                 nf.set_heading(*_gps_course(vel, vacc))  # a heading the course contradicts
                 nf.counters.heading_resets += 1
+        # a fixed-wing's heading as unknown as a lost tilt: a start again takes it from the
+        # course (supervision.LOST_TILT_SIGMA_DEG says why not a car's)
+        heading_sd = heading_sigma_rad(nf.P)
+        if (
+            heading_sd > np.deg2rad(LOST_TILT_SIGMA_DEG)
+            and self.cfg.vehicle.fixed_wing
+            and _gps_course(vel, vacc) is not None
+        ):
+            raise LostTrackError(
+                f"heading 1-sigma {np.rad2deg(heading_sd):.0f} deg after the fix at t = "
+                f"{t_fix:.3f} s (beyond {LOST_TILT_SIGMA_DEG:g} deg, and the course gives it)"
+            )

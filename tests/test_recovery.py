@@ -171,6 +171,27 @@ def test_a_start_again_with_a_channel_excluded_carries_on():
     assert np.all(np.abs(errs) <= 5.0 * sig)
 
 
+def test_a_heading_lost_in_a_coast_starts_again_on_the_course():
+    """``uav-survey`` at ``mems-consumer``, run 9: its 30 s coast ends with the tilt's
+    1-sigma 25 deg (under the limit) and the heading's 41 deg. Fused on from there, the
+    next fixes pulled the heading to 14 deg off with a 1 deg sigma (heading NEES about
+    170 over 345-400 s). A fixed-wing's heading is its course, so the fix finds the track
+    lost and the filter starts again on the course: the heading is honest again."""
+    from filters.bench import _first_seconds
+    from filters.pipeline import run_filter
+
+    sim = simulate_flight(load_flight("uav-survey", ["sensor.preset=mems-consumer"]), 9)
+    samples, fixes = _first_seconds(sim.samples, sim.fixes, 400.0)
+    res = run_filter(samples, fixes, sim.config)
+    (loss,) = res.track_losses
+    assert 329.9 < loss.lost_at_s < 331.0 and "heading 1-sigma" in loss.reason
+    assert loss.restarted_s - loss.lost_at_s < 1.0
+    est = res.estimates
+    after = (est.t_s > 345.0) & (est.t_s < 400.0)
+    z = run_errors(est, sim.truth).att_ned_rad[after, 2] / np.sqrt(est.cov_nav[after, 8, 8])
+    assert np.mean(z * z) < 2.0  # 1 for an honest sigma
+
+
 def test_a_lost_run_keeps_the_series_a_campaign_averages(lost_run):
     """Epochs, GPS innovations and rate NIS: one entry each as in the same run without the
     loss (NaN where there was none), so Monte Carlo runs with and without losses average."""
