@@ -352,25 +352,28 @@ class NavFilter(
         att_sigma_rad: np.ndarray,
         rate_sigma_rps: float,
         aoa_rad: float = 0.0,
+        bias: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
         """Set the nominal state and a diagonal prior (biases from ``noise.bias_prior_cov``).
 
         ``aoa_rad`` is the ``AOA`` state's prior mean (the angle of attack, or with
         a lift law its offset ``alpha_b``); its 1-sigma is ``aoa_prior_sigma_rad``.
+        ``bias``, if given, is the bias states' estimate (6 + nq,) and covariance to start
+        from instead of zero and the prior (a start again keeps the array's).
         """
         self.t_s = float(t_s)
         self.pos = np.array(pos_ned_m, dtype=float)
         self.vel = np.array(vel_ned_mps, dtype=float)
         self.q = quat_normalize(np.asarray(q_nb, dtype=float))
         self.w = np.array(omega_b_rps, dtype=float)
-        self.bias = np.zeros(6 + self.layout.nq)
+        self.bias = np.zeros(6 + self.layout.nq) if bias is None else np.array(bias[0], dtype=float)
         p = np.zeros((self.layout.n, self.layout.n))
         p[POS, POS] = np.diag(np.broadcast_to(pos_sigma_m, 3) ** 2)
         p[VEL, VEL] = np.diag(np.broadcast_to(vel_sigma_mps, 3) ** 2)
         p[ATT, ATT] = np.diag(np.broadcast_to(att_sigma_rad, 3) ** 2)
         p[RATE, RATE] = np.eye(3) * rate_sigma_rps**2
         bs = self.layout.bias
-        p[bs, bs] = self.noise.bias_prior_cov
+        p[bs, bs] = self.noise.bias_prior_cov if bias is None else bias[1]
         dr = self.layout.dr
         p[dr, dr] = np.eye(self.layout.n_dr) * self.noise.position_sigma_m**2
         self.dr = np.zeros(self.layout.n_dr)

@@ -15,8 +15,13 @@ again there:
   heading) and for a vehicle whose heading is its course (``initial.heading_source =
   "gps"``), otherwise the configured heading with :data:`RESTART_HEADING_SIGMA_DEG` (for the
   latter until the next course);
-- the rate zero with :data:`RESTART_RATE_SIGMA_DPS`, the biases and the other states
-  at their priors: after a divergence their estimates are not to be trusted.
+- the rate zero with :data:`RESTART_RATE_SIGMA_DPS`;
+- the biases as they were, with their covariance (the array's errors do not change when
+  the track is lost; at their priors only if the loss left them not finite or not positive
+  definite): started at their priors, the tilt and a horizontal bias read alike in level
+  flight and were learned again apart under sigmas that did not follow (``uav-survey`` at
+  ``mems-consumer``: the pitch and the zero-lift angle drifted together, design notes);
+- the other states (lift law, sensor positions) at their priors.
 
 Estimates are not recorded while the track is lost, and those after the start again are
 marked not valid (:attr:`ngnav.records.NavEstimate.valid`) until the tilt and heading
@@ -187,6 +192,8 @@ class RecoveryMixin:
             np.arctan2(c[1, 0], c[0, 0]),
         )
         tilt = float(np.deg2rad(RESTART_TILT_SIGMA_DEG))
+        bs = nf.layout.bias
+        kept = _usable_biases(nf.bias, nf.P[bs, bs])
         nf.initialise(
             t_fix,
             ned - c @ cfg.antenna_b_m,
@@ -198,6 +205,7 @@ class RecoveryMixin:
             np.array([tilt, tilt, heading_sigma]),
             float(np.deg2rad(RESTART_RATE_SIGMA_DPS)),
             aoa_rad=float(np.deg2rad(ZERO_LIFT_AOA_DEG if cfg.vehicle.fixed_wing else 0.0)),
+            bias=kept,
         )
         nf.t_s = float(self._t[i1 - b])
         self._seed_compensation(seed, seed_ok)
@@ -216,3 +224,15 @@ class RecoveryMixin:
         self._converging = True
         self._t_last_reopen = -np.inf
         self.last_gps_t = t_fix
+
+
+def _usable_biases(bias: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The bias states' estimate (k,) and covariance (k, k) for a start again to keep, or
+    None (start from the prior) when the loss left them not finite or not positive definite."""
+    if not (np.all(np.isfinite(bias)) and np.all(np.isfinite(cov))):
+        return None
+    try:
+        np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        return None
+    return bias.copy(), cov.copy()
