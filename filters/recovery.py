@@ -4,7 +4,8 @@ The filter loses its track when its covariance stops being positive definite, wh
 GPS velocities it rejects say its tilt or rate is gone for good (a second attitude reopen
 within ``REOPEN_MIN_INTERVAL_S``: :class:`ngnav.errors.LostTrackError`), or when a fix
 leaves its tilt 1-sigma above ``LOST_TILT_SIGMA_DEG`` (a long coast at a poor grade), or
-a fixed-wing's heading 1-sigma above it where the fix's course can give it back. It then stops
+its heading's where the fix's course can give the heading back (a vehicle flying along its
+course). It then stops
 estimating, skips the blocks up to the next GPS fix that has one before it, and starts
 again there:
 

@@ -429,12 +429,11 @@ class StepMixin:
             if course is not None and not nf.update_heading(*course)[1]:
                 nf.set_heading(*_gps_course(vel, vacc))  # a heading the course contradicts
                 nf.counters.heading_resets += 1
-        # a fixed-wing's heading as unknown as a lost tilt: a start again takes it from the
-        # course (supervision.LOST_TILT_SIGMA_DEG says why not a car's)
+        # a heading as unknown as a lost tilt, where a start again takes it from the course
         heading_sd = heading_sigma_rad(nf.P)
         if (
             heading_sd > np.deg2rad(LOST_TILT_SIGMA_DEG)
-            and self.cfg.vehicle.fixed_wing
+            and (self.cfg.vehicle.fixed_wing or self._heading_is_course)
             and _gps_course(vel, vacc) is not None
         ):
             raise LostTrackError(

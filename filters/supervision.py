@@ -58,14 +58,11 @@ MODEL_PAUSE_AFTER_VELOCITY_REJECTS = 2
 #: The healthy scenarios' coasts stay under 10 deg; at the paper's grade (``ic3022``)
 #: ``uav-survey``'s 30 s coast ends at 100-200 deg, and fused on from there run 0 kept
 #: velocity sigmas of 16 m/s to 10^6 m/s for 35 s of accepted fixes.
-#: The same limit holds a fixed-wing's heading at a fix whose course a start again can take
-#: (no sideslip: the course is the heading): a 41 deg heading 1-sigma at the end of
-#: ``uav-survey``'s coast at ``mems-consumer`` (tilt 25 deg, under the limit) was pulled by
-#: the next fixes' linearised updates to a heading 14 deg off under a 1 deg sigma (run 9:
-#: attitude NEES 430 for 20 s, 14-22 to the flight's end). Not a car's: its course sets the
-#: heading only at resets, and after a start again its yaw rate (unknown to 15 deg/s) takes the
-#: heading past the limit within seconds (``ground`` with its track lost at 60 s: 18 of 50
-#: runs lost again within 30 s, against 2).
+#: The same limit holds the heading of a vehicle that flies along its course (a fixed-wing,
+#: or ``initial.heading_source = "gps"``) at a fix whose course a start again can take: a 41
+#: deg heading 1-sigma at the end of ``uav-survey``'s coast at ``mems-consumer`` (tilt 25 deg,
+#: under the limit) was pulled by the next fixes' linearised updates to a heading 14 deg off
+#: under a 1 deg sigma (run 9: attitude NEES 430 for 20 s, 14-22 to the flight's end).
 LOST_TILT_SIGMA_DEG = 30.0
 #: Horizontal speed above which a GPS course can set the heading, m/s.
 COURSE_MIN_SPEED_MPS = 5.0
