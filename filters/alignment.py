@@ -164,6 +164,10 @@ class AlignmentMixin:
         #: first one it is the configured heading with its sigma (docs/design.md, "Heading").
         self._heading_is_course = ini.heading_source == "gps"
         self._heading_pending = self._heading_is_course
+        #: The vehicle flies along its course: a fixed-wing (no sideslip) or one whose heading
+        #: is its course. A start again takes its heading from the course, and a heading as
+        #: unknown as a lost tilt is a lost track.
+        self._flies_on_course = cfg.vehicle.fixed_wing or self._heading_is_course
         q0 = quat_from_euler(roll0, pitch0, yaw0)
         c0 = dcm_from_quat(q0)
         nf.initialise(

@@ -174,10 +174,7 @@ class RecoveryMixin:
         if not np.any(seed_ok):
             return  # no valid sample to tilt by: the next fix will do
         f_b = seed[seed_ok, 3:6].mean(axis=0)
-        # a fixed-wing flies along its course (no sideslip), and so does a vehicle whose
-        # heading is its course (``initial.heading_source = "gps"``)
-        on_course = cfg.vehicle.fixed_wing or self._heading_is_course
-        course = _gps_course(vel, vacc) if on_course else None
+        course = _gps_course(vel, vacc) if self._flies_on_course else None
         if course is not None:
             heading, heading_sigma = course
             if cfg.vehicle.fixed_wing:

@@ -433,7 +433,7 @@ class StepMixin:
         heading_sd = heading_sigma_rad(nf.P)
         if (
             heading_sd > np.deg2rad(LOST_TILT_SIGMA_DEG)
-            and (self.cfg.vehicle.fixed_wing or self._heading_is_course)
+            and self._flies_on_course
             and _gps_course(vel, vacc) is not None
         ):
             raise LostTrackError(
